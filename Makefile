@@ -1,0 +1,41 @@
+# Robotics (RCM + FIROS): developer entry points. Everything ROS-related runs with /usr/bin first on PATH
+# and /usr/bin/python3 (see ../shared/ENVIRONMENT.md, "The PATH trap").
+
+SHELL := /bin/bash
+PYTHON := /usr/bin/python3
+export PATH := /usr/bin:/bin:/usr/sbin:/sbin:$(PATH)
+WS := build/rcmp_ws
+OVERLAY := $(WS)/devel/setup.bash
+PYTEST_ARGS ?=
+
+.PHONY: help deps build test test-fast demo bench clean
+
+help:
+	@echo "make demo   - start a master and a robot on this machine (loopback) and pair them"
+	@echo "make test   - install what the tests need, build the catkin workspace, run every test"
+	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
+	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
+	@echo "make bench  - run the benchmarks and write docs/PERFORMANCE.md"
+
+deps:
+	bash scripts/install-deps.sh
+
+build: $(OVERLAY)
+
+$(OVERLAY): $(shell find robotics_msgs rcm firos -name package.xml -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' 2>/dev/null)
+	bash scripts/build-workspace.sh $(WS)
+
+test: deps build
+	bash scripts/run-tests.sh $(PYTEST_ARGS)
+
+test-fast: build
+	bash scripts/run-tests.sh -m 'not slow' $(PYTEST_ARGS)
+
+demo: deps build
+	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo
+
+bench: deps build
+	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all
+
+clean:
+	rm -rf build

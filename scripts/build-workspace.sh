@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Build the catkin workspace WS (default build/rcmp_ws) whose src/ links to this tree's catkin packages.
+# catkin_make is run with /usr/bin first on PATH and /usr/bin/python3, so that a pyenv python3 on PATH
+# (see ../shared/ENVIRONMENT.md) cannot break parse_package_xml.py.
+set -euo pipefail
+root=$(cd "$(dirname "$0")/.." && pwd)
+ws=${1:-build/rcmp_ws}
+case "$ws" in /*) ;; *) ws="$root/$ws" ;; esac
+export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
+mkdir -p "$ws/src"
+for pkg in robotics_msgs rcm firos; do
+  ln -sfn "$root/$pkg" "$ws/src/$pkg"
+done
+cd "$ws"
+catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=OFF > build.log 2>&1 || {
+  tail -40 build.log >&2; echo "build-workspace: catkin_make failed, full log in $ws/build.log" >&2; exit 1; }
+touch devel/setup.bash
+echo "build-workspace: $ws built (overlay: $ws/devel/setup.bash)"
