@@ -22,7 +22,7 @@ deps:
 
 build: $(OVERLAY)
 
-$(OVERLAY): $(shell find robotics_msgs rcm firos -name package.xml -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' 2>/dev/null)
+$(OVERLAY): $(shell find robotics_msgs rcm firos demo tests/ros_pkgs -name package.xml -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.srv' 2>/dev/null)
 	bash scripts/build-workspace.sh $(WS)
 
 test: deps build

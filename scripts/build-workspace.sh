@@ -8,8 +8,9 @@ ws=${1:-build/rcmp_ws}
 case "$ws" in /*) ;; *) ws="$root/$ws" ;; esac
 export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
 mkdir -p "$ws/src"
-for pkg in robotics_msgs rcm firos; do
-  ln -sfn "$root/$pkg" "$ws/src/$pkg"
+# the product's packages, the demo robot, and (never shipped) the test suite's own package
+for pkg in robotics_msgs rcm firos demo/robotics_demo tests/ros_pkgs/robotics_test; do
+  if [ -f "$root/$pkg/package.xml" ]; then ln -sfn "$root/$pkg" "$ws/src/$(basename "$pkg")"; fi
 done
 cd "$ws"
 catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=OFF > build.log 2>&1 || {
