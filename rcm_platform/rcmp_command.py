@@ -1,0 +1,254 @@
+"""Errors a user can cause and the validation of everything a user sends to the RDAPI.
+
+Owns ``CommandError`` and its subclasses (each carries the HTTP status the RDAPI answers with and a sentence naming
+the problem), the rules for names (ROS graph names without slashes: a letter, then letters, digits and
+underscores, at most 64 characters), the validation of service nodes and service launchers, and the splitting of
+params as a shell would split them (``shlex.split``; no shell ever runs them).
+
+Also owns ``ReadCache``: the answers of the read commands kept in memory until the robotics data changes (see
+``RoboticsData.generation``), so that reads do not go to SQLite (and to a thread) while nothing changed.
+"""
+
+import functools
+import re
+import shlex
+
+from twisted.internet import defer
+
+MAX_NAME_LENGTH = 64
+MAX_FIELD_LENGTH = 255
+MAX_PARAMS_LENGTH = 4096
+MAX_ITEMS = 256
+
+NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+PACKAGE_RE = re.compile(r"[A-Za-z][A-Za-z0-9_-]*\Z")
+FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*\Z")
+SIDES = ("S", "R")
+
+
+class CommandError(Exception):
+    """A request the platform refuses; ``str()`` is the sentence given back as ``reason``."""
+
+    status = 400
+
+
+class BadRequest(CommandError):
+    """Malformed or invalid input (HTTP 400)."""
+
+    status = 400
+
+
+class NotFound(CommandError):
+    """Unknown name or path (HTTP 404)."""
+
+    status = 404
+
+
+class MethodNotAllowed(CommandError):
+    """The path exists but not with this method (HTTP 405); ``allowed`` lists the methods it takes."""
+
+    status = 405
+
+    def __init__(self, message, allowed=()):
+        super().__init__(message)
+        self.allowed = tuple(allowed)
+
+
+class Conflict(CommandError):
+    """Duplicate name, or a service logic still in use (HTTP 409)."""
+
+    status = 409
+
+
+class TooLarge(CommandError):
+    """The request body is over the size limit (HTTP 413)."""
+
+    status = 413
+
+
+def _show(value, limit=40):
+    """A short, printable rendering of a user value for an error sentence."""
+    text = repr(value)
+    return text if len(text) <= limit else text[:limit - 3] + "..."
+
+
+def validate_name(value, field):
+    """Return ``value`` if it is a valid platform name (pi_name, slg_name, sn_name, sl_name); else BadRequest."""
+    if not isinstance(value, str):
+        raise BadRequest(f"'{field}' must be a string, not {type(value).__name__}")
+    if not value:
+        raise BadRequest(f"'{field}' must not be empty")
+    if len(value) > MAX_NAME_LENGTH:
+        raise BadRequest(f"'{field}' is longer than {MAX_NAME_LENGTH} characters")
+    if not NAME_RE.match(value):
+        raise BadRequest(f"'{field}' {_show(value)} is not a valid name: use a letter, then letters, digits "
+                         f"and underscores (no slashes, spaces or other characters)")
+    return value
+
+
+def _validate_token(value, field, pattern, what):
+    if not isinstance(value, str):
+        raise BadRequest(f"'{field}' must be a string, not {type(value).__name__}")
+    if not value:
+        raise BadRequest(f"'{field}' must not be empty")
+    if len(value) > MAX_FIELD_LENGTH:
+        raise BadRequest(f"'{field}' is longer than {MAX_FIELD_LENGTH} characters")
+    if not pattern.match(value):
+        raise BadRequest(f"'{field}' {_show(value)} is not a valid {what}")
+    return value
+
+
+def validate_side(value, field):
+    """Return ``value`` if it is ``S`` (server side) or ``R`` (robot side)."""
+    if value not in SIDES or not isinstance(value, str):
+        raise BadRequest(f"'{field}' must be \"S\" (server side) or \"R\" (robot side), not {_show(value)}")
+    return value
+
+
+def split_params(value, field="params"):
+    """Split ``value`` as a POSIX shell would (quotes, escapes) into an argv list; BadRequest if it cannot."""
+    if not isinstance(value, str):
+        raise BadRequest(f"'{field}' must be a string, not {type(value).__name__}")
+    if len(value) > MAX_PARAMS_LENGTH:
+        raise BadRequest(f"'{field}' is longer than {MAX_PARAMS_LENGTH} characters")
+    if "\x00" in value:
+        raise BadRequest(f"'{field}' contains a NUL character")
+    try:
+        return shlex.split(value)
+    except ValueError as exc:
+        raise BadRequest(f"'{field}' cannot be split into arguments: {exc}") from None
+
+
+def _check_fields(item, where, required, optional):
+    if not isinstance(item, dict):
+        raise BadRequest(f"{where} must be a JSON object, not {_json_type(item)}")
+    for key in item:
+        if key not in required and key not in optional:
+            raise BadRequest(f"{where} has an unknown field {_show(key)}")
+    for key in required:
+        if key not in item:
+            raise BadRequest(f"{where} lacks the required field '{key}'")
+
+
+NODE_FIELDS = ("sn_package", "sn_type", "sn_name", "sn_params", "sn_side")
+LAUNCHER_FIELDS = ("sl_package", "sl_file_launcher", "sl_name", "sl_params", "sl_side")
+
+
+def validate_service_node(item, index=0):
+    """Return a normalised service node dict (all five fields, params a string) or raise BadRequest."""
+    where = f"sn_list[{index}]"
+    _check_fields(item, where, ("sn_package", "sn_type", "sn_name", "sn_side"), ("sn_params",))
+    params = item.get("sn_params", "")
+    if params is None:
+        params = ""
+    split_params(params, f"{where}.sn_params")
+    return {
+        "sn_package": _validate_token(item["sn_package"], f"{where}.sn_package", PACKAGE_RE, "package name"),
+        "sn_type": _validate_token(item["sn_type"], f"{where}.sn_type", FILE_RE, "node type (executable name)"),
+        "sn_name": validate_name(item["sn_name"], f"{where}.sn_name"),
+        "sn_params": params,
+        "sn_side": validate_side(item["sn_side"], f"{where}.sn_side"),
+    }
+
+
+def validate_service_launcher(item, index=0):
+    """Return a normalised service launcher dict (all five fields, params a string) or raise BadRequest."""
+    where = f"sl_list[{index}]"
+    _check_fields(item, where, ("sl_package", "sl_file_launcher", "sl_name", "sl_side"), ("sl_params",))
+    params = item.get("sl_params", "")
+    if params is None:
+        params = ""
+    split_params(params, f"{where}.sl_params")
+    return {
+        "sl_package": _validate_token(item["sl_package"], f"{where}.sl_package", PACKAGE_RE, "package name"),
+        "sl_file_launcher": _validate_token(item["sl_file_launcher"], f"{where}.sl_file_launcher", FILE_RE,
+                                            "launch file name"),
+        "sl_name": validate_name(item["sl_name"], f"{where}.sl_name"),
+        "sl_params": params,
+        "sl_side": validate_side(item["sl_side"], f"{where}.sl_side"),
+    }
+
+
+def _json_type(value):
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, (int, float)):
+        return "a number"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "an object"
+    return type(value).__name__
+
+
+def require_fields(body, required, optional=()):
+    """Check that the request body ``body`` (a dict) has every required field and no unknown one."""
+    if not isinstance(body, dict):
+        raise BadRequest(f"the request body must be a JSON object, not {_json_type(body)}")
+    for key in body:
+        if key not in required and key not in optional:
+            raise BadRequest(f"unknown field {_show(key)} (expected: {', '.join(tuple(required) + tuple(optional))})")
+    for key in required:
+        if key not in body:
+            raise BadRequest(f"the required field '{key}' is missing")
+
+
+def validate_service_logic(body):
+    """Validate a ``service_logic/provisioning`` body; return ``(slg_name, sn_list, sl_list, ss_side)``."""
+    require_fields(body, ("slg_name",), ("sn_list", "sl_list", "ss_side"))
+    slg_name = validate_name(body["slg_name"], "slg_name")
+    lists = []
+    for field, check in (("sn_list", validate_service_node), ("sl_list", validate_service_launcher)):
+        value = body.get(field)
+        if value is None:
+            value = []
+        if not isinstance(value, list):
+            raise BadRequest(f"'{field}' must be a list, not {_json_type(value)}")
+        if len(value) > MAX_ITEMS:
+            raise BadRequest(f"'{field}' has more than {MAX_ITEMS} items")
+        lists.append([check(item, i) for i, item in enumerate(value)])
+    sn_list, sl_list = lists
+    ss_side = validate_side(body["ss_side"], "ss_side") if body.get("ss_side") is not None else "S"
+    seen = set()
+    for name in [n["sn_name"] for n in sn_list] + [l["sl_name"] for l in sl_list]:
+        if name in seen:
+            raise BadRequest(f"the item name '{name}' is used twice in service logic '{slg_name}'")
+        seen.add(name)
+    return slg_name, sn_list, sl_list, ss_side
+
+
+def command(func):
+    """Make a command method always return a Deferred, failing (not raising) on a CommandError."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        return defer.maybeDeferred(func, *args, **kwargs)
+    return wrapper
+
+
+class ReadCache:
+    """Answers of read commands, valid while the robotics data's ``generation`` has not moved.
+
+    Writes bump ``RoboticsData.generation`` (in the same lock as their transaction), so a cached answer is
+    served only if no write committed since it was read. The number of entries is bounded.
+    """
+
+    def __init__(self, data, max_entries=512):
+        self.data = data
+        self.max_entries = max_entries
+        self._entries = {}
+
+    def get(self, key):
+        entry = self._entries.get(key)
+        if entry is not None and entry[0] == self.data.generation:
+            return entry[1]
+        return None
+
+    def put(self, key, generation, value):
+        if len(self._entries) >= self.max_entries:
+            self._entries.clear()
+        self._entries[key] = (generation, value)
+        return value

@@ -1,0 +1,443 @@
+"""The agent ``rcmp_n``: command line, configuration, logging, addresses, and assembling the agent for its role.
+
+Owns:
+- the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``) and ``main()``;
+- the configuration files and their validation: ``HOME/init.cfg`` (robot ``robot=yes`` or server VM
+  ``robot=no``) or, when it is absent, the master's optional ``HOME/.init.cfg``; every ``[main]`` key of
+  CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses`` and ``log_max_bytes``
+  (``Config``, ``ConfigError``, ``load_config``); a bad value stops the agent with one line naming the file,
+  the key and the problem, exit status 2;
+- logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
+  Twisted's own log goes to the same place;
+- the platform address (VPN) and the RDAPI address (external interface), looked up with netifaces;
+- the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, then the RDAPI listener;
+  robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
+  SIGTERM/SIGINT before the process exits 0.
+"""
+
+import argparse
+import configparser
+import dataclasses
+import ipaddress
+import logging
+import logging.handlers
+import os
+import socket
+import sys
+
+PROG = "rcmp_n"
+DEFAULT_HOME = "/opt/rcm-platform"
+LOG_BACKUPS = 5
+DEFAULT_LOG_MAX_BYTES = 1024 * 1024
+MASTER_DEFAULT_PORTS = [10100, 10101, 10102, 10103]
+
+log = logging.getLogger("rcm_platform")
+
+
+class ConfigError(Exception):
+    """A configuration problem; ``str()`` is one line naming the file, the key and the problem."""
+
+
+@dataclasses.dataclass
+class Config:
+    home: str
+    role: str                          # "master" | "robot" | "server"
+    config_file: str | None            # HOME/init.cfg, HOME/.init.cfg or None
+    name: str
+    ip_master: str | None
+    inbound_open_ports: list
+    vpn_interface: str = "tun0"
+    vpn_address: str | None = None
+    ext_interface: str = "eth0"
+    ext_address: str | None = None
+    ext_port: int = 80
+    ic_port: int = 9999
+    ros_port_base: int = 11311
+    heartbeat_interval: float = 2.0    # (ext) seconds between heartbeats
+    heartbeat_misses: int = 3          # (ext) missed beats before a peer is gone
+    log_max_bytes: int = DEFAULT_LOG_MAX_BYTES   # (ext) size at which rcmp.log rolls over
+
+
+# -- configuration ----------------------------------------------------------------------------------------------
+
+def _parse_port(value):
+    try:
+        port = int(value, 10)
+    except ValueError:
+        raise ValueError(f"not a port number: {value!r}") from None
+    if not 1 <= port <= 65535:
+        raise ValueError(f"not a port number (1-65535): {value!r}")
+    return port
+
+
+def _parse_ports(value):
+    ports = []
+    for part in value.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        port = _parse_port(part)
+        if port in ports:
+            raise ValueError(f"port {port} is listed twice: {value!r}")
+        ports.append(port)
+    return ports
+
+
+def _parse_bool(value):
+    lowered = value.strip().lower()
+    if lowered in ("yes", "true", "on", "1"):
+        return True
+    if lowered in ("no", "false", "off", "0"):
+        return False
+    raise ValueError(f"expected yes or no: {value!r}")
+
+
+def _parse_ipv4(value):
+    try:
+        return str(ipaddress.IPv4Address(value.strip()))
+    except ValueError:
+        raise ValueError(f"not an IPv4 address: {value!r}") from None
+
+
+def _parse_name(value):
+    from .rcmp_command import NAME_RE, MAX_NAME_LENGTH
+    value = value.strip()
+    if not value or len(value) > MAX_NAME_LENGTH or not NAME_RE.match(value):
+        raise ValueError(f"not a valid instance name (a letter, then letters, digits and underscores, "
+                         f"at most {MAX_NAME_LENGTH}): {value!r}")
+    return value
+
+
+def _parse_interface(value):
+    value = value.strip()
+    if not value or len(value) > 15 or "/" in value or any(c.isspace() for c in value):
+        raise ValueError(f"not a network interface name: {value!r}")
+    return value
+
+
+def _parse_positive_float(value):
+    try:
+        number = float(value)
+    except ValueError:
+        raise ValueError(f"not a number: {value!r}") from None
+    if not 0 < number < 3600:
+        raise ValueError(f"must be more than 0 and less than 3600 seconds: {value!r}")
+    return number
+
+
+def _int_parser(minimum, maximum):
+    def parse(value):
+        try:
+            number = int(value, 10)
+        except ValueError:
+            raise ValueError(f"not a whole number: {value!r}") from None
+        if not minimum <= number <= maximum:
+            raise ValueError(f"must be between {minimum} and {maximum}: {value!r}")
+        return number
+    return parse
+
+
+# key -> (parser, roles that may set it)
+KEYS = {
+    "name": (_parse_name, ("master", "robot", "server")),
+    "robot": (_parse_bool, ("robot", "server")),
+    "ip_master": (_parse_ipv4, ("robot", "server")),
+    "inbound_open_ports": (_parse_ports, ("master", "robot", "server")),
+    "vpn_interface": (_parse_interface, ("master", "robot", "server")),
+    "vpn_address": (_parse_ipv4, ("master", "robot", "server")),
+    "ext_interface": (_parse_interface, ("master",)),
+    "ext_address": (_parse_ipv4, ("master",)),
+    "ext_port": (_parse_port, ("master",)),
+    "ic_port": (_parse_port, ("master", "robot", "server")),
+    "ros_port_base": (_parse_port, ("master", "server")),
+    "heartbeat_interval": (_parse_positive_float, ("master", "robot", "server")),
+    "heartbeat_misses": (_int_parser(1, 1000), ("master", "robot", "server")),
+    "log_max_bytes": (_int_parser(1024, 1024 ** 3), ("master", "robot", "server")),
+}
+
+
+def _read_file(path):
+    parser = configparser.ConfigParser(interpolation=None, strict=True, inline_comment_prefixes=None)
+    parser.optionxform = str  # keys are case-sensitive, as written in the seed
+    try:
+        with open(path, encoding="utf-8") as f:
+            parser.read_file(f)
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except configparser.MissingSectionHeaderError as exc:
+        raise ConfigError(f"{path}: line {exc.lineno}: a key before the [main] section") from None
+    except configparser.DuplicateOptionError as exc:
+        raise ConfigError(f"{path}: key '{exc.option}': given twice") from None
+    except configparser.DuplicateSectionError as exc:
+        raise ConfigError(f"{path}: section [{exc.section}] given twice") from None
+    except configparser.Error as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"{path}: {first}") from None
+    sections = parser.sections()
+    if "main" not in sections:
+        raise ConfigError(f"{path}: no [main] section")
+    for section in sections:
+        if section != "main":
+            raise ConfigError(f"{path}: unknown section [{section}] (only [main] is read)")
+    return dict(parser.items("main"))
+
+
+def _host_name():
+    return socket.gethostname().split(".")[0]
+
+
+def load_config(home):
+    """Read and validate the configuration of the agent living in ``home``; raise ConfigError on any problem."""
+    home = os.path.abspath(home)
+    if not os.path.isdir(home):
+        raise ConfigError(f"{home}: the platform folder does not exist")
+    robot_file = os.path.join(home, "init.cfg")
+    master_file = os.path.join(home, ".init.cfg")
+    if os.path.exists(robot_file):
+        path, raw = robot_file, _read_file(robot_file)
+        try:
+            is_robot = _parse_bool(raw["robot"]) if "robot" in raw else True
+        except ValueError as exc:
+            raise ConfigError(f"{path}: key 'robot': {exc}") from None
+        role = "robot" if is_robot else "server"
+    else:
+        role = "master"
+        path = master_file if os.path.exists(master_file) else None
+        raw = _read_file(master_file) if path else {}
+
+    values = {}
+    for key, text in raw.items():
+        if key not in KEYS:
+            raise ConfigError(f"{path}: unknown key '{key}'")
+        parser, roles = KEYS[key]
+        if role not in roles:
+            what = {"master": "the master", "robot": "a robot", "server": "a server VM"}[role]
+            raise ConfigError(f"{path}: key '{key}': not used by {what}")
+        try:
+            values[key] = parser(text)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: key '{key}': {exc}") from None
+    values.pop("robot", None)
+
+    if "name" not in values:
+        if role == "master":
+            values["name"] = "master"
+        else:
+            host = _host_name()
+            try:
+                values["name"] = _parse_name(host)
+            except ValueError:
+                raise ConfigError(f"{path}: key 'name': not set, and the host name {host!r} is not a valid "
+                                  f"instance name: set name=") from None
+    if "inbound_open_ports" not in values:
+        values["inbound_open_ports"] = list(MASTER_DEFAULT_PORTS) if role == "master" else []
+    config = Config(home=home, role=role, config_file=path, ip_master=values.pop("ip_master", None), **values)
+    if config.role == "master":
+        clash = {config.ext_port, config.ic_port} & set(config.inbound_open_ports)
+        if config.ext_port == config.ic_port or clash:
+            raise ConfigError(f"{path or master_file}: key 'ic_port': the ports ext_port, ic_port and "
+                              f"inbound_open_ports must all differ")
+    if config.role != "master" and config.ip_master is None:
+        address = platform_address(config)
+        if address is not None:
+            config.ip_master = master_address_from(address)
+    return config
+
+
+def master_address_from(own_address):
+    """The default master address: the agent's own VPN address with the last octet 1."""
+    parts = own_address.split(".")
+    return ".".join(parts[:3] + ["1"])
+
+
+def _interface_ipv4(interface):
+    try:
+        import netifaces
+        addresses = netifaces.ifaddresses(interface).get(netifaces.AF_INET, [])
+    except (ImportError, ValueError):
+        return None
+    for entry in addresses:
+        if entry.get("addr"):
+            return entry["addr"]
+    return None
+
+
+def platform_address(config):
+    """The agent's platform (VPN) address: ``vpn_address``, or the IPv4 address of ``vpn_interface``, or None."""
+    return config.vpn_address or _interface_ipv4(config.vpn_interface)
+
+
+def rdapi_address(config):
+    """The master's RDAPI address: ``ext_address``, or the IPv4 address of ``ext_interface``, or None."""
+    return config.ext_address or _interface_ipv4(config.ext_interface)
+
+
+# -- logging ----------------------------------------------------------------------------------------------------
+
+def setup_logging(config, level=logging.INFO, to_stderr=True):
+    """Log to HOME/log/rcmp.log (rotating, 5 backups) and, in the foreground, to stderr. Twisted's log too."""
+    log_dir = os.path.join(config.home, "log")
+    os.makedirs(log_dir, exist_ok=True)
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        root.removeHandler(handler)
+    file_handler = logging.handlers.RotatingFileHandler(
+        os.path.join(log_dir, "rcmp.log"), maxBytes=config.log_max_bytes, backupCount=LOG_BACKUPS,
+        encoding="utf-8")
+    file_handler.setFormatter(fmt)
+    root.addHandler(file_handler)
+    if to_stderr:
+        stream = logging.StreamHandler(sys.stderr)
+        stream.setFormatter(fmt)
+        root.addHandler(stream)
+    root.setLevel(level)
+    from twisted.logger import STDLibLogObserver, globalLogBeginner
+    globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="twisted")], redirectStandardIO=False)
+
+
+# -- assembly ---------------------------------------------------------------------------------------------------
+
+class StartupError(Exception):
+    """The agent cannot start (no address, data file unusable, cannot listen); ``str()`` is one line."""
+
+
+def _process_table(reactor, config):
+    try:
+        from . import rcmp_ms
+    except ImportError as exc:  # rcmp_ms is being written in parallel: run without service spaces meanwhile
+        log.warning("rcmp_ms is not available (%s): no process table, no service spaces", exc)
+        return None
+    return rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+
+
+def build_master(config, reactor):
+    """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
+    from twisted.application import service
+    from . import rcmp_event
+    from .rcmp_command import CommandError
+    from .rcmp_ext_connector import make_site, rdapi_service
+    from .rcmp_platform_command import PlatformCommands
+    from .rcmp_robotics_data import DataError, RoboticsData
+    from .rcmp_service_command import ServiceCommands
+
+    where = config.config_file or os.path.join(config.home, ".init.cfg")
+    vpn = platform_address(config)
+    if vpn is None:
+        raise StartupError(f"{where}: no IPv4 address on the VPN interface '{config.vpn_interface}' "
+                           f"(is the VPN up? or set vpn_address)")
+    public_ip = rdapi_address(config)
+    if public_ip is None:
+        raise StartupError(f"{where}: no IPv4 address on the external interface '{config.ext_interface}' "
+                           f"(set ext_interface or ext_address)")
+    try:
+        data = RoboticsData(os.path.join(config.home, "robotics_data.db"))
+        data.set_master(config.name, vpn, config.inbound_open_ports)
+    except (DataError, CommandError) as exc:
+        raise StartupError(str(exc)) from None
+    table = _process_table(reactor, config)
+    agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip)
+    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces))
+    top = service.MultiService()
+    agent.setServiceParent(top)
+    rdapi_service(site, config.ext_port, public_ip).setServiceParent(top)
+    top.rdapi_address = (public_ip, config.ext_port)
+    top.data = data
+    return top
+
+
+def build_robot(config, reactor):
+    """A robot or a server VM: the RobotAgent as one MultiService."""
+    from twisted.application import service
+    from . import rcmp_event, rcmp_ms
+    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+    agent = rcmp_event.RobotAgent(config, table, reactor)
+    top = service.MultiService()
+    agent.setServiceParent(top)
+    return top
+
+
+def build_agent(config, reactor):
+    return build_master(config, reactor) if config.role == "master" else build_robot(config, reactor)
+
+
+# -- main -------------------------------------------------------------------------------------------------------
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="The RCM platform agent. With HOME/init.cfg it runs as a robot (robot=yes) or a server VM "
+                    "(robot=no); without it, as the master (optional HOME/.init.cfg) serving the RDAPI. Runs in "
+                    "the foreground until SIGTERM or SIGINT, then stops everything it started.")
+    parser.add_argument("--home", metavar="DIR", default=os.environ.get("RCMP_HOME", DEFAULT_HOME),
+                        help="the platform folder: configuration, robotics_data.db, log/ "
+                             f"(default: $RCMP_HOME, else {DEFAULT_HOME})")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="the lowest level written to the log (default: INFO)")
+    parser.add_argument("--no-stderr", action="store_true",
+                        help="log only to HOME/log/rcmp.log, not to stderr (for running as a daemon)")
+    return parser.parse_args(argv)
+
+
+def _log_to_file_only(message):
+    """Record a fatal error in rcmp.log without repeating it on stderr (stderr gets exactly one line)."""
+    root = logging.getLogger()
+    for handler in list(root.handlers):
+        if type(handler) is logging.StreamHandler:
+            root.removeHandler(handler)
+    log.error("%s", message)
+
+
+def _fail(message, status):
+    sys.stderr.write(f"{PROG}: {message}\n")
+    return status
+
+
+def main(argv=None):
+    """Run the agent; returns the exit status (0 after SIGTERM/SIGINT, 2 on a configuration error, 1 otherwise)."""
+    args = parse_args(sys.argv[1:] if argv is None else argv)
+    try:
+        config = load_config(args.home)
+    except ConfigError as exc:
+        return _fail(str(exc), 2)
+    try:
+        setup_logging(config, getattr(logging, args.log_level), to_stderr=not args.no_stderr)
+    except OSError as exc:
+        return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", 1)
+
+    from twisted.internet import reactor
+    try:
+        top = build_agent(config, reactor)
+    except StartupError as exc:
+        _log_to_file_only(f"cannot start: {exc}")
+        return _fail(str(exc), 2)
+
+    outcome = {"status": 0}
+
+    def start():
+        try:
+            top.startService()
+        except Exception as exc:  # cannot listen, or an agent refused to start: one line, then stop
+            message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            _log_to_file_only(f"cannot start: {message}")
+            sys.stderr.write(f"{PROG}: cannot start the {config.role}: {message}\n")
+            outcome["status"] = 1
+            reactor.stop()
+            return
+        where = getattr(top, "rdapi_address", None)
+        rdapi = f", RDAPI on http://{where[0]}:{where[1]}/" if where else ""
+        log.info("rcmp_n started as %s '%s' in %s%s", config.role, config.name, config.home, rdapi)
+
+    def stop():
+        log.info("rcmp_n stopping")
+        if top.running:
+            return top.stopService()
+        return None
+
+    reactor.callWhenRunning(start)
+    reactor.addSystemEventTrigger("before", "shutdown", stop)
+    reactor.run()
+    log.info("rcmp_n stopped")
+    return outcome["status"]

@@ -1,0 +1,70 @@
+"""Commands on service logics (read, provisioning, r_provisioning) and ``service_space/read``, behind the RDAPI.
+
+Each command validates its input (``rcmp_command``), does its SQLite work in a thread (``deferToThread``) and
+returns a Deferred firing with the ``reason`` of an OK answer or failing with a ``CommandError``. Reads of service
+logics are answered from a ``ReadCache`` while the robotics data has not changed. Service spaces are live state
+owned by the master runtime: ``spaces.describe(ss_name)`` (the ServiceSpaceManager) answers for them.
+"""
+
+from twisted.internet import defer, threads
+
+from .rcmp_command import command, NotFound, ReadCache, require_fields, validate_name, validate_service_logic
+
+
+class ServiceCommands:
+    """``data``: RoboticsData; ``spaces``: object with ``describe(ss_name) -> dict | None`` or None."""
+
+    def __init__(self, data, spaces=None):
+        self.data = data
+        self.spaces = spaces
+        self.cache = ReadCache(data)
+
+    @command
+    def read(self, slg_name=None):
+        """All service logic names as ``[{"slg_name"}]``, or the items of one service logic."""
+        if slg_name is None:
+            return self._cached("names", lambda: [{"slg_name": n} for n in self.data.service_logic_names()])
+        slg_name = validate_name(slg_name, "slg_name")
+
+        def one():
+            logic = self.data.service_logic(slg_name)
+            if logic is None:
+                raise NotFound(f"there is no service logic named '{slg_name}'")
+            return logic
+        return self._cached(("logic", slg_name), one)
+
+    def _cached(self, key, compute):
+        cached = self.cache.get(key)
+        if cached is not None:
+            return defer.succeed(cached)
+        generation = self.data.generation
+        d = threads.deferToThread(compute)
+        d.addCallback(lambda value: self.cache.put(key, generation, value))
+        return d
+
+    @command
+    def provisioning(self, body):
+        """Store a new service logic with its service nodes and launchers (one transaction)."""
+        slg_name, sn_list, sl_list, ss_side = validate_service_logic(body)
+        d = threads.deferToThread(self.data.provision_service_logic, slg_name, sn_list, sl_list, ss_side)
+        d.addCallback(lambda _: f"service logic '{slg_name}' provisioned with {len(sn_list)} service node(s) "
+                                f"and {len(sl_list)} service launcher(s)")
+        return d
+
+    @command
+    def r_provisioning(self, body):
+        """Remove a service logic no provisioned robot uses."""
+        require_fields(body, ("slg_name",))
+        slg_name = validate_name(body["slg_name"], "slg_name")
+        d = threads.deferToThread(self.data.remove_service_logic, slg_name)
+        d.addCallback(lambda _: f"service logic '{slg_name}' removed")
+        return d
+
+    @command
+    def service_space(self, ss_name):
+        """The running service space of robot ``ss_name``; NotFound when it has none."""
+        ss_name = validate_name(ss_name, "ss_name")
+        described = self.spaces.describe(ss_name) if self.spaces is not None else None
+        if described is None:
+            return defer.fail(NotFound(f"there is no running service space named '{ss_name}'"))
+        return defer.succeed(described)
