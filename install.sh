@@ -1,0 +1,353 @@
+#!/bin/bash
+# install.sh: installs the RCM agent of this distribution package (rcm_platform_master or rcm_platform_robot).
+#
+# Owns the installing user's half of the installation: the step-by-step configuration wizard (or, with
+# --non-interactive, the same answers from flags), the catkin workspace ~/rcmp_ws (with firos, rcm and
+# robotics_msgs unpacked into src/ on a master with FIWARE support) and the configuration file's content.
+# Everything that needs root (apt-get, /usr/local/bin/rcmp_n, the rcm_platform package, /opt/rcm-platform,
+# /etc/init.d/rcmpd) is done by sub_inst.sh, run through sudo when the user is not root.
+# Run it again to change the configuration: the current values are the defaults.
+set -eo pipefail
+export LC_ALL=C
+
+HERE=$(cd "$(dirname "$0")" && pwd)
+PROG=install.sh
+if [ -f "$HERE/rcm_platform/rcmp_ext_connector.py" ]; then ROLE=master; else ROLE=robot; fi
+DEFAULT_PORTS="10100, 10101, 10102, 10103"
+COMPONENT_ZIPS=(firos.zip rcm_driver.zip robotics_msgs.zip)
+
+usage() {
+    cat <<EOF
+Usage: ./install.sh [options]
+
+Installs the rcm $ROLE agent from this folder. Without options it asks every question step by step
+(choices in ( ), the default in [ ]; Enter takes the default). Any answer given as an option is not asked.
+
+Answers:
+  --replace-ws yes|no      replace an existing workspace (default yes)
+EOF
+    if [ "$ROLE" = master ]; then cat <<EOF
+  --fiware yes|no          FIWARE support: firos, rcm_driver and robotics_msgs into the workspace
+                           (default yes when their zips are in this folder)
+  --inbound-ports LIST     inbound open ports, comma separated (default "$DEFAULT_PORTS")
+EOF
+    else cat <<EOF
+  --robot yes|no           this machine is a robot (no: a server virtual machine) (default yes)
+  --name NAME              platform instance name, as provisioned on the master (default: host name)
+  --ip-master ADDRESS      the master's VPN address (default: this machine's VPN address, last octet 1)
+EOF
+    fi
+    cat <<EOF
+  --start yes|no           start (or restart) the rcm daemon at the end (default yes)
+  -n, --non-interactive    ask nothing: options, then the current configuration, then defaults
+
+(ext) configuration keys (written only when given; a re-run keeps the current ones):
+  --vpn-interface IF  --vpn-address ADDRESS  --ic-port PORT  --ros-port-base PORT
+EOF
+    if [ "$ROLE" = master ]; then cat <<EOF
+  --ext-interface IF  --ext-address ADDRESS  --ext-port PORT
+EOF
+    fi
+    cat <<EOF
+
+(ext) installation places:
+  --home DIR               platform folder (default /opt/rcm-platform)
+  --workspace DIR          catkin workspace (default ~/rcmp_ws)
+  --service-name NAME      init script /etc/init.d/NAME (default rcmpd)
+  --bin-dir DIR            where rcmp_n goes (default /usr/local/bin)
+  --lib-dir DIR            where the rcm_platform package goes (default: /usr/bin/python3's site dist-packages)
+  --skip-deps              do not run apt-get (the dependencies are already installed)
+  -h, --help               this text
+EOF
+}
+
+die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+usage_error() { echo "$PROG: error: $*" >&2; echo "Try './install.sh --help'." >&2; exit 2; }
+trim() { local s=$1; s=${s#"${s%%[![:space:]]*}"}; s=${s%"${s##*[![:space:]]}"}; printf '%s' "$s"; }
+
+# --- answer checkers: print the normalized value, or an explanation and return 1 ---------------------------------
+check_yesno() {
+    case "${1,,}" in
+        y|yes) echo yes ;;
+        n|no) echo no ;;
+        *) echo "Please answer yes or no."; return 1 ;;
+    esac
+}
+check_port() {
+    if [[ "$1" =~ ^[0-9]{1,5}$ ]] && [ "$((10#$1))" -ge 1 ] && [ "$((10#$1))" -le 65535 ]; then
+        echo "$((10#$1))"
+    else
+        echo "'$1' is not a port number (1-65535)."; return 1
+    fi
+}
+check_ports() {
+    local item out=() seen=" " p
+    IFS=',' read -r -a items <<<"$1"
+    for item in "${items[@]}"; do
+        item=$(trim "$item")
+        p=$(check_port "$item") || { echo "'$item' in '$1' is not a port number (1-65535)."; return 1; }
+        case "$seen" in *" $p "*) echo "Port $p is listed twice in '$1'."; return 1 ;; esac
+        seen="$seen$p "
+        out+=("$p")
+    done
+    [ ${#out[@]} -gt 0 ] || { echo "At least one port is needed."; return 1; }
+    local joined; joined=$(printf '%s, ' "${out[@]}"); echo "${joined%, }"
+}
+check_ipv4() {
+    local o1 o2 o3 o4
+    if [[ "$1" =~ ^([0-9]{1,3})\.([0-9]{1,3})\.([0-9]{1,3})\.([0-9]{1,3})$ ]]; then
+        o1=${BASH_REMATCH[1]} o2=${BASH_REMATCH[2]} o3=${BASH_REMATCH[3]} o4=${BASH_REMATCH[4]}
+        if [ $((10#$o1)) -le 255 ] && [ $((10#$o2)) -le 255 ] && [ $((10#$o3)) -le 255 ] && [ $((10#$o4)) -le 255 ]; then
+            echo "$((10#$o1)).$((10#$o2)).$((10#$o3)).$((10#$o4))"; return 0
+        fi
+    fi
+    echo "'$1' is not an IPv4 address (like 10.11.12.1)."; return 1
+}
+check_name() {
+    if [[ "$1" =~ ^[A-Za-z][A-Za-z0-9_]*$ ]]; then echo "$1"
+    else echo "'$1' is not a valid name: a letter, then letters, digits and underscores."; return 1; fi
+}
+check_ifname() {
+    if [[ "$1" =~ ^[A-Za-z0-9_.:-]{1,15}$ ]]; then echo "$1"
+    else echo "'$1' is not a network interface name."; return 1; fi
+}
+check_path() {
+    case "$1" in
+        /) echo "'/' cannot be used here."; return 1 ;;
+        /*) echo "${1%/}" ;;
+        *) echo "'$1' is not an absolute path."; return 1 ;;
+    esac
+}
+
+# --- command line ----------------------------------------------------------------------------------------------
+INTERACTIVE=yes
+SKIP_DEPS=no
+declare -A OPT=()
+set_opt() {  # set_opt KEY CHECKER OPTION VALUE
+    local v
+    v=$("$2" "$4") || usage_error "$3: $v"
+    OPT[$1]=$v
+}
+while [ $# -gt 0 ]; do
+    opt=$1
+    case "$opt" in
+        -h|--help) usage; exit 0 ;;
+        -n|--non-interactive) INTERACTIVE=no; shift; continue ;;
+        --skip-deps) SKIP_DEPS=yes; shift; continue ;;
+        --*=*) set -- "${opt%%=*}" "${opt#*=}" "${@:2}"; continue ;;
+    esac
+    [ $# -ge 2 ] || usage_error "$opt needs a value"
+    val=$2
+    case "$opt" in
+        --replace-ws) set_opt replace_ws check_yesno "$opt" "$val" ;;
+        --start) set_opt start check_yesno "$opt" "$val" ;;
+        --inbound-ports) set_opt inbound_open_ports check_ports "$opt" "$val" ;;
+        --vpn-interface) set_opt vpn_interface check_ifname "$opt" "$val" ;;
+        --vpn-address) set_opt vpn_address check_ipv4 "$opt" "$val" ;;
+        --ic-port) set_opt ic_port check_port "$opt" "$val" ;;
+        --ros-port-base) set_opt ros_port_base check_port "$opt" "$val" ;;
+        --home) set_opt home check_path "$opt" "$val" ;;
+        --workspace) set_opt workspace check_path "$opt" "$val" ;;
+        --bin-dir) set_opt bin_dir check_path "$opt" "$val" ;;
+        --lib-dir) set_opt lib_dir check_path "$opt" "$val" ;;
+        --service-name) set_opt service_name check_name "$opt" "$val" ;;
+        *)
+            if [ "$ROLE" = master ]; then
+                case "$opt" in
+                    --fiware) set_opt fiware check_yesno "$opt" "$val" ;;
+                    --ext-interface) set_opt ext_interface check_ifname "$opt" "$val" ;;
+                    --ext-address) set_opt ext_address check_ipv4 "$opt" "$val" ;;
+                    --ext-port) set_opt ext_port check_port "$opt" "$val" ;;
+                    *) usage_error "unknown option '$opt' for the rcm master installer" ;;
+                esac
+            else
+                case "$opt" in
+                    --robot) set_opt robot check_yesno "$opt" "$val" ;;
+                    --name) set_opt name check_name "$opt" "$val" ;;
+                    --ip-master) set_opt ip_master check_ipv4 "$opt" "$val" ;;
+                    *) usage_error "unknown option '$opt' for the rcm robot installer" ;;
+                esac
+            fi ;;
+    esac
+    shift 2
+done
+
+HOME_DIR=${OPT[home]:-/opt/rcm-platform}
+WS=${OPT[workspace]:-$HOME/rcmp_ws}
+SERVICE=${OPT[service_name]:-rcmpd}
+BIN_DIR=${OPT[bin_dir]:-/usr/local/bin}
+LIB_DIR=${OPT[lib_dir]:-$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths(vars={"base": "/usr/local"})["purelib"])')}
+if [ "$ROLE" = master ]; then CFG_FILE=$HOME_DIR/.init.cfg; else CFG_FILE=$HOME_DIR/init.cfg; fi
+
+# --- the current configuration gives the defaults of a re-run ---------------------------------------------------
+cfg_get() {  # the value of KEY in the current configuration file, or nothing
+    [ -r "$CFG_FILE" ] || return 0
+    local line value=
+    while IFS= read -r line; do
+        if [[ "$line" =~ ^[[:space:]]*$1[[:space:]]*[=:](.*)$ ]]; then value=$(trim "${BASH_REMATCH[1]}"); fi
+    done <"$CFG_FILE"
+    printf '%s' "$value"
+}
+current() {  # current KEY CHECKER: the configured value if it is valid
+    local v; v=$(cfg_get "$1"); [ -n "$v" ] || return 0
+    local out; if out=$("$2" "$v"); then printf '%s' "$out"; fi
+}
+
+vpn_guess() {  # this machine's VPN address: --vpn-address, or the address of the VPN interface
+    if [ -n "${ANS[vpn_address]}" ]; then echo "${ANS[vpn_address]}"; return; fi
+    ip -4 -o addr show dev "${ANS[vpn_interface]:-tun0}" 2>/dev/null | sed -n 's/.* inet \([0-9.]*\)\/.*/\1/p' | sed -n 1p
+}
+
+# --- the wizard --------------------------------------------------------------------------------------------------
+declare -A ANS=()
+ask() {  # ask KEY CHECKER DEFAULT QUESTION: the option's value, or the user's answer (Enter = DEFAULT)
+    local key=$1 checker=$2 default=$3 question=$4 answer value
+    if [ -n "${OPT[$key]+set}" ]; then ANS[$key]=${OPT[$key]}; return; fi
+    if [ "$INTERACTIVE" = no ]; then
+        [ -n "$default" ] || die "no value for '$key': give it as an option (see --help)" 2
+        ANS[$key]=$default; return
+    fi
+    while true; do
+        printf '%s ' "$question"
+        IFS= read -r answer || { echo; die "no answer to \"$question\" (end of input)"; }
+        answer=$(trim "$answer")
+        [ -n "$answer" ] || answer=$default
+        if [ -z "$answer" ]; then echo "An answer is needed."; continue; fi
+        if value=$("$checker" "$answer"); then ANS[$key]=$value; return; fi
+        echo "$value"
+    done
+}
+yn_question() {  # the ([Y]es/no) or (yes/[N]o) suffix
+    if [ "$1" = yes ]; then echo "([Y]es/no)?"; else echo "(yes/[N]o)?"; fi
+}
+with_default() { if [ -n "$1" ]; then echo "[$1]:"; else echo ":"; fi; }
+
+echo "RCM $ROLE installation from $HERE"
+if [ -d "$WS" ]; then
+    ask replace_ws check_yesno yes "The workspace $(basename "$WS") already exists: do you wanna replace it $(yn_question yes)"
+else
+    ANS[replace_ws]=yes
+fi
+
+# (ext) keys: options first, then the current configuration; never asked
+for key in vpn_interface vpn_address ic_port ros_port_base ext_interface ext_address ext_port; do
+    if [ -n "${OPT[$key]+set}" ]; then ANS[$key]=${OPT[$key]}; continue; fi
+    case $key in
+        vpn_address|ext_address) ANS[$key]=$(current "$key" check_ipv4) ;;
+        ic_port|ros_port_base|ext_port) ANS[$key]=$(current "$key" check_port) ;;
+        *) ANS[$key]=$(current "$key" check_ifname) ;;
+    esac
+done
+
+if [ "$ROLE" = master ]; then
+    have_zips=yes
+    for z in "${COMPONENT_ZIPS[@]}"; do [ -f "$HERE/$z" ] || have_zips=no; done
+    check_fiware() {
+        local v; v=$(check_yesno "$1") || { echo "$v"; return 1; }
+        if [ "$v" = yes ] && [ "$have_zips" = no ]; then
+            echo "firos.zip, rcm_driver.zip and robotics_msgs.zip are not in $HERE: answer no and install them" \
+                 "by hand into the workspace's src/, or use robotics.zip."
+            return 1
+        fi
+        echo "$v"
+    }
+    if [ -n "${OPT[fiware]+set}" ]; then
+        msg=$(check_fiware "${OPT[fiware]}") || usage_error "--fiware: $msg"
+    fi
+    ask fiware check_fiware "$have_zips" "Do you want FIWARE support (firos, rcm_driver and robotics_msgs in the workspace) $(yn_question "$have_zips")"
+    ports_default=$(current inbound_open_ports check_ports); ports_default=${ports_default:-$DEFAULT_PORTS}
+    ask inbound_open_ports check_ports "$ports_default" "Inbound open ports, comma separated $(with_default "$ports_default")"
+else
+    robot_default=$(current robot check_yesno); robot_default=${robot_default:-yes}
+    ask robot check_yesno "$robot_default" "Is this machine a robot (no: a virtual machine on the server side) $(yn_question "$robot_default")"
+    name_default=$(current name check_name)
+    if [ -z "$name_default" ]; then
+        name_default=$(check_name "$(hostname -s 2>/dev/null | tr '.-' '__')") || name_default=
+    fi
+    ask name check_name "$name_default" "Name of this platform instance (as provisioned on the master) $(with_default "$name_default")"
+    master_default=$(current ip_master check_ipv4)
+    if [ -z "$master_default" ]; then
+        own=$(vpn_guess || true)
+        [ -n "$own" ] && master_default=${own%.*}.1
+    fi
+    ask ip_master check_ipv4 "$master_default" "VPN address of the rcm master $(with_default "$master_default")"
+    ANS[inbound_open_ports]=${OPT[inbound_open_ports]:-$(current inbound_open_ports check_ports)}
+fi
+ask start check_yesno yes "Do you want to start the rcm daemon now $(yn_question yes)"
+
+# --- the configuration file ----------------------------------------------------------------------------------------
+CFG_TMP=$(mktemp)
+trap 'rm -f "$CFG_TMP"' EXIT
+{
+    if [ "$ROLE" = master ]; then
+        echo "# .init.cfg: configuration of the rcm master, written by install.sh (run it again to change it)"
+        echo "[main]"
+        echo "inbound_open_ports=${ANS[inbound_open_ports]}"
+        keys="ext_interface ext_address ext_port vpn_interface vpn_address ic_port ros_port_base"
+    else
+        echo "# init.cfg: configuration of this rcm instance, written by install.sh (run it again to change it)"
+        echo "[main]"
+        echo "name=${ANS[name]}"
+        echo "robot=${ANS[robot]}"
+        echo "ip_master=${ANS[ip_master]}"
+        [ -z "${ANS[inbound_open_ports]}" ] || echo "inbound_open_ports=${ANS[inbound_open_ports]}"
+        keys="vpn_interface vpn_address ic_port ros_port_base"
+    fi
+    for key in $keys; do
+        [ -z "${ANS[$key]}" ] || echo "$key=${ANS[$key]}"
+    done
+} >"$CFG_TMP"
+chmod 0644 "$CFG_TMP"
+
+as_root() {
+    if [ "$(id -u)" -eq 0 ]; then "$@"; else
+        echo "$PROG: the next step needs administration rights: sudo $(basename "$1") ${2:-}"
+        sudo "$@"
+    fi
+}
+
+# --- 1. dependencies (root) ------------------------------------------------------------------------------------------
+if [ "$SKIP_DEPS" = no ]; then
+    as_root "$HERE/sub_inst.sh" deps "$ROLE"
+fi
+
+# --- 2. the workspace (the installing user) -----------------------------------------------------------------------
+build_needed=no
+if [ -d "$WS" ] && [ "${ANS[replace_ws]}" = yes ]; then
+    echo "Replacing the workspace $WS"
+    rm -rf -- "$WS"
+fi
+if [ ! -d "$WS/src" ]; then build_needed=yes; fi
+mkdir -p "$WS/src"
+if [ "$ROLE" = master ] && [ "${ANS[fiware]}" = yes ]; then
+    for z in "${COMPONENT_ZIPS[@]}"; do
+        root=$(unzip -Z1 "$HERE/$z" | sed -n 1p); root=${root%%/*}
+        if [ ! -e "$WS/src/$root" ]; then
+            echo "Unpacking $z into $WS/src"
+            unzip -q -o "$HERE/$z" -d "$WS/src"
+            build_needed=yes
+        fi
+    done
+fi
+[ -f "$WS/devel/setup.bash" ] || build_needed=yes
+if [ "$build_needed" = yes ]; then
+    echo "Building the workspace $WS with catkin_make (log: $WS/build.log)"
+    if ! (cd "$WS" && PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 \
+            -DCATKIN_ENABLE_TESTING=OFF >"$WS/build.log" 2>&1); then
+        tail -n 30 "$WS/build.log" >&2
+        die "catkin_make failed in $WS; nothing was installed (full log: $WS/build.log)"
+    fi
+fi
+
+# --- 3. files, configuration and the init script (root) ----------------------------------------------------------
+as_root "$HERE/sub_inst.sh" install --role "$ROLE" --src "$HERE" --home "$HOME_DIR" --bin-dir "$BIN_DIR" \
+    --lib-dir "$LIB_DIR" --service-name "$SERVICE" --workspace "$WS" --config "$CFG_TMP"
+
+# --- 4. the daemon ---------------------------------------------------------------------------------------------------
+if [ "${ANS[start]}" = yes ]; then
+    as_root "$HERE/sub_inst.sh" restart --service-name "$SERVICE"
+else
+    echo "The rcm daemon was not started: start it with 'sudo service $SERVICE start'" \
+         "(or 'sudo service $SERVICE restart' if it was already running)."
+fi
+echo "RCM $ROLE installed: configuration $CFG_FILE, workspace $WS."

@@ -1,0 +1,62 @@
+#!/bin/bash
+# sub_uninst.sh: the privileged half of uninstall.sh (run as root, through sudo when needed).
+#
+# Owns removing what sub_inst.sh placed: it stops the daemon (the agent stops everything it started), removes
+# the update-rc.d links, /etc/init.d/NAME, /etc/default/NAME, the pid file, rcmp_n, the rcm_platform package and
+# the platform folder (configuration, robotics data, logs, rosconsole.config). apt-get packages are kept.
+set -eo pipefail
+export LC_ALL=C
+PROG=sub_uninst.sh
+export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
+die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+[ "$(id -u)" -eq 0 ] || die "must run as root (uninstall.sh runs it through sudo)"
+
+SERVICE=rcmpd
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --service-name)
+            [ $# -ge 2 ] || die "--service-name needs a value" 2
+            [[ "$2" =~ ^[A-Za-z][A-Za-z0-9_]*$ ]] || die "--service-name: '$2' is not a valid name" 2
+            SERVICE=$2; shift 2 ;;
+        *) die "unknown option '$1'" 2 ;;
+    esac
+done
+
+# where things are: the settings written at installation, else the standard places
+RCMP_BIN=/usr/local/bin/rcmp_n
+RCMP_HOME=/opt/rcm-platform
+RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths(vars={"base": "/usr/local"})["purelib"])')
+if [ -r "/etc/default/$SERVICE" ]; then
+    # only the known keys, never the file as a script
+    while IFS='=' read -r key value; do
+        case "$key" in RCMP_BIN|RCMP_HOME|RCMP_PYLIB) [ -z "$value" ] || printf -v "$key" '%s' "$value" ;; esac
+    done <"/etc/default/$SERVICE"
+fi
+for v in RCMP_BIN RCMP_HOME RCMP_PYLIB; do
+    case "${!v}" in /?*) ;; *) die "/etc/default/$SERVICE: $v='${!v}' is not an absolute path" ;; esac
+done
+
+if [ -x "/etc/init.d/$SERVICE" ]; then
+    "/etc/init.d/$SERVICE" stop || die "the daemon did not stop: nothing removed"
+    update-rc.d -f "$SERVICE" remove >/dev/null 2>&1 || true
+fi
+rm -f "/etc/init.d/$SERVICE" "/etc/default/$SERVICE" "/run/$SERVICE.pid"
+echo "Removed /etc/init.d/$SERVICE"
+
+removed_bin=no
+if [ -f "$RCMP_BIN" ]; then rm -f "$RCMP_BIN"; removed_bin=yes; fi
+[ "$removed_bin" = no ] || echo "Removed $RCMP_BIN"
+if [ -d "$RCMP_PYLIB/rcm_platform" ]; then
+    rm -rf -- "$RCMP_PYLIB/rcm_platform"
+    echo "Removed $RCMP_PYLIB/rcm_platform"
+fi
+if [ -d "$RCMP_HOME" ]; then
+    # the platform folder holds the configuration, the robotics data and the logs; refuse anything else
+    if [ -e "$RCMP_HOME/.init.cfg" ] || [ -e "$RCMP_HOME/init.cfg" ] || [ -e "$RCMP_HOME/rosconsole.config" ] \
+            || [ "$(basename "$RCMP_HOME")" = rcm-platform ]; then
+        rm -rf -- "$RCMP_HOME"
+        echo "Removed $RCMP_HOME"
+    else
+        echo "$PROG: $RCMP_HOME does not look like an RCM platform folder: left in place" >&2
+    fi
+fi
