@@ -99,7 +99,7 @@ def decode_v1(text):
     try:
         value = json.loads(text.replace(_V1_QUOTE, '"'), parse_constant=_refuse_constant)
     except (ValueError, RecursionError):
-        value = _python_literal(text.replace(_V1_QUOTE, "'"))
+        value = _python_literal(text.replace(_V1_QUOTE, "'"), text)
     if not isinstance(value, dict):
         raise NgsiEncodingError("a v1 value must hold a JSON object, got %s" % _json_kind(value))
     return value
@@ -109,12 +109,12 @@ def _refuse_constant(name):
     raise ValueError("%s is not JSON" % name)
 
 
-def _python_literal(text):
+def _python_literal(text, original):
     try:
         value = ast.literal_eval(text)
     except (ValueError, TypeError, SyntaxError, MemoryError, RecursionError):
-        raise NgsiEncodingError("value is neither JSON nor a Python literal (quotes written %27): %.80r"
-                                % text) from None
+        raise NgsiEncodingError("value is neither JSON nor a Python literal (quotes written %%27): %r%s"
+                                % (original[:80], "..." if len(original) > 80 else "")) from None
     return _json_copy(value, "value")
 
 
