@@ -198,6 +198,7 @@ class Rdapi(resource.Resource):
 
     def _write(self, request, status, payload):
         data = self._encode(request, status, payload)
+        request.setHeader(b"Content-Length", str(len(data)).encode())
         request.write(data)
         request.finish()
 
