@@ -332,12 +332,17 @@ def test_load_message_class_finds_installed_and_workspace_types():
     assert rc.load_message_class("geometry_msgs/Twist") is Twist
     assert rc.load_message_class("robotics_msgs/CB_Event")._type == "robotics_msgs/CB_Event"
     assert rc.load_message_class("Header")._type == "std_msgs/Header"
+    assert rc.load_message_class("geometry_msgs.msg.Twist") is Twist
+    assert rc.load_message_class("robotics_msgs.msg.Robot_Event")._type == "robotics_msgs/Robot_Event"
 
 
 @pytest.mark.parametrize("name,problem", [
     ("geometry_msgs", "not a message type name (expected 'pkg/Type')"),
     ("geometry_msgs/Twist/x", "not a message type name (expected 'pkg/Type')"),
     ("../etc/passwd", "not a message type name (expected 'pkg/Type')"),
+    ("geometry_msgs.Twist", "not a message type name (expected 'pkg/Type')"),
+    ("os.path.join", "not a message type name (expected 'pkg/Type')"),
+    ("this.msg.Zen", "unknown message type: no ROS package 'this' with messages is installed"),
     ("no_such_pkg_xyz/Thing", "unknown message type: no ROS package 'no_such_pkg_xyz' with messages is installed"),
     ("geometry_msgs/NoSuchType", "unknown message type: package 'geometry_msgs' has no message 'NoSuchType'"),
 ])

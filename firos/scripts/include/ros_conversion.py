@@ -15,8 +15,9 @@ Public API
     classes that cannot be imported by name (e.g. generated with ``genpy.dynamic``).
 ``load_message_class("pkg/Type") -> class``
     The class of any message type whose Python package is importable (Debian's ROS packages, the sourced catkin
-    workspace). Only ROS package names that have a ``msg`` sub-package are imported, so a name from outside never
-    imports an arbitrary Python module.
+    workspace); the Python form ``"pkg.msg.Type"`` that NGSI attribute types carry is accepted too. Only ROS
+    package names that have a ``msg`` sub-package are imported, so a name from outside never imports an arbitrary
+    Python module.
 ``ConversionError`` (a ``ValueError``)
     Raised for every problem; ``str()`` names the root type and the dotted path of the field, e.g.
     ``geometry_msgs/Twist.linear.x: expected float, got str``. Attributes ``root_type``, ``path``, ``problem``.
@@ -117,8 +118,9 @@ _NONFINITE_FROM_JSON = {
 
 # A field type: base type, then optionally "[]" (variable array) or "[N]" (fixed array).
 _FIELD_TYPE_RE = re.compile(r"^([^\[\]]+)(?:\[(\d*)\])?$")
-# A message type name as load_message_class accepts it.
+# A message type name as load_message_class accepts it, and its Python form.
 _MESSAGE_TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/([A-Za-z][A-Za-z0-9_]*)$")
+_PYTHON_TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)\.msg\.([A-Za-z][A-Za-z0-9_]*)$")
 
 
 def _kind_of(base_type):
@@ -173,10 +175,14 @@ def _has_msg_subpackage(package):
 
 
 def load_message_class(type_name):
-    """The message class for ``"pkg/Type"``; ConversionError when the name is malformed or no such type exists."""
+    """The message class for ``"pkg/Type"`` (or ``"pkg.msg.Type"``); ConversionError when the name is malformed
+    or no such type is installed."""
     if not isinstance(type_name, str):
         raise ConversionError(_type_name(type_name), "", "a message type must be a str like 'pkg/Type'")
     type_name = _TYPE_ALIASES.get(type_name, type_name)
+    python_form = _PYTHON_TYPE_RE.match(type_name)
+    if python_form is not None:
+        type_name = "%s/%s" % python_form.groups()
     match = _MESSAGE_TYPE_RE.match(type_name)
     if match is None:
         raise ConversionError(type_name, "", "not a message type name (expected 'pkg/Type')")
