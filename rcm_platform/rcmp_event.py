@@ -1,0 +1,542 @@
+"""The messages agents exchange and the two sides' handlers: ``MasterAgent`` and ``RobotAgent``.
+
+Owns: the table of ops (who serves each, required fields and their types) and their validation; the master's
+side (hello → accepted / refused against the robotics data, one session per connected robot, heartbeats, the
+service space created on connection through ``rcmp_ms.ServiceSpaceManager`` and torn down when the robot goes,
+``disconnect`` for the RDAPI's r_provisioning) and the robot's side (wait for the platform address, hello with
+backoff, serve ``start_items``/``stop_items`` with ``rcmp_ms.RobotSideRunner``, report item exits, stop its
+robot-side items and say hello again when the master is lost). The wire format is ``rcmp_inter_communication``'s;
+``docs/PROTOCOL.md`` documents every op.
+
+Live state the RDAPI shows (connected, paired, the service space row) is written through ``RoboticsData`` in a
+thread, one write after the other in the order the events happened.
+"""
+
+import logging
+
+from twisted.application import service
+from twisted.internet import defer, threads
+
+from rcm_platform import rcmp_inter_communication as ic
+from rcm_platform import rcmp_wd
+
+log = logging.getLogger("rcmp.event")
+
+VERSION = 1                      # version of this message set, sent in hello
+START_TIMEOUT = 180.0            # seconds the master waits for the robot to start its items
+STOP_TIMEOUT = 60.0              # seconds the master waits for the robot to stop them
+HELLO_TIMEOUT = 15.0
+RETRY_CAP = 5.0                  # longest wait between two hellos
+ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
+AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
+
+_NONE = type(None)
+
+# op -> (who serves it, {field: accepted types}); fields in OPTIONAL may be absent (then None)
+OPS = {
+    "hello": ("master", {"name": str, "address": str, "robot": bool, "version": int}),
+    "bye": ("master", {"reason": str}),
+    "item_exited": ("master", {"ss_name": str, "report": dict}),
+    "heartbeat": ("both", {}),
+    "start_items": ("robot", {"ss_name": str, "ros_master_uri": (str, _NONE), "items": list,
+                              "start_ros_master_port": (int, _NONE)}),
+    "stop_items": ("robot", {"ss_name": str}),
+    "disconnect": ("robot", {"reason": str}),
+}
+OPTIONAL = {"ros_master_uri", "start_ros_master_port"}
+
+
+def _type_names(types):
+    types = types if isinstance(types, tuple) else (types,)
+    names = {str: "a string", bool: "true or false", int: "an integer", list: "a list", dict: "an object",
+             _NONE: "null"}
+    return " or ".join(names.get(t, t.__name__) for t in types)
+
+
+def validate(op, body, side):
+    """Check that ``side`` ("master" or "robot") serves ``op`` and that ``body`` has its fields.
+
+    Returns the body with optional fields filled in; raises ``ic.Refused`` with a sentence otherwise.
+    """
+    spec = OPS.get(op)
+    if spec is None or spec[0] not in (side, "both"):
+        raise ic.Refused(f"the {side} agent does not serve op {op!r}", code="unknown_op")
+    fields = spec[1]
+    checked = dict(body)
+    for field, types in fields.items():
+        if field not in body:
+            if field in OPTIONAL:
+                checked[field] = None
+                continue
+            raise ic.Refused(f"{op}: field {field!r} is missing", code="bad_request")
+        value = body[field]
+        accepted = types if isinstance(types, tuple) else (types,)
+        ok = isinstance(value, accepted) and not (isinstance(value, bool) and bool not in accepted)
+        if not ok:
+            raise ic.Refused(f"{op}: field {field!r} must be {_type_names(types)}", code="bad_request")
+    return checked
+
+
+class _OrderedWrites:
+    """Runs blocking RoboticsData writes in a thread, one at a time, in the order they were asked for."""
+
+    def __init__(self):
+        self._last = defer.succeed(None)
+
+    def __call__(self, fn, *args):
+        done = defer.Deferred()
+
+        def run(_):
+            d = threads.deferToThread(fn, *args)
+            d.addCallbacks(done.callback, done.errback)
+            return d.addBoth(lambda _: None)
+
+        self._last = self._last.addCallback(run)
+        done.addErrback(lambda f: log.error("robotics data %s%r failed: %s", fn.__name__, args,
+                                            f.getErrorMessage()) or None)
+        return done
+
+
+def _service_space_manager(reactor, table, config, public_ip, on_state):
+    try:
+        from rcm_platform import rcmp_ms
+    except ImportError as exc:  # rcmp_ms is being written in parallel; hello still works without it
+        log.warning("rcmp_ms is not available (%s): robots connect but get no service space", exc)
+        return _NoServiceSpaces()
+    return rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, on_state=on_state)
+
+
+class _NoServiceSpaces:
+    """Used only while rcmp_ms does not exist yet: connections work, no service space is created."""
+
+    on_state = None
+
+    def create(self, pi_name, service_logic, robot):
+        return defer.succeed(None)
+
+    def teardown(self, pi_name):
+        return defer.succeed(None)
+
+    def teardown_all(self):
+        return defer.succeed(None)
+
+    def describe(self, ss_name):
+        return None
+
+    def item_exited(self, ss_name, report):
+        log.info("item of %s exited: %s", ss_name, report)
+
+
+def _platform_address(config):
+    """The agent's platform address, or None while it does not exist yet."""
+    from rcm_platform import rcmp_node  # rcmp_node assembles the agents, so import it late
+    try:
+        return rcmp_node.platform_address(config)
+    except Exception as exc:  # the interface is not there or has no address yet
+        log.debug("platform address not available: %s", exc)
+        return None
+
+
+# ------------------------------------------------------------------------------------------------------------
+# master side
+
+class RobotSession:
+    """One connected robot as seen by the master; the ``RemoteRobot`` given to the ServiceSpaceManager."""
+
+    def __init__(self, agent, peer, name, address, robot):
+        self.agent = agent
+        self.peer = peer
+        self.name = name
+        self.address = address
+        self.robot = robot
+        self.ended = False
+        self.watchdog = rcmp_wd.Watchdog(
+            agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
+            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
+            last_heard=lambda: peer.last_heard, on_gone=self._gone, name=f"robot {name}")
+
+    def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
+        return self.peer.request("start_items", {
+            "ss_name": ss_name, "ros_master_uri": ros_master_uri, "items": items,
+            "start_ros_master_port": start_ros_master_port}, timeout=START_TIMEOUT)
+
+    def stop_items(self, ss_name):
+        if self.peer.closed:
+            return defer.succeed({})
+        return self.peer.request("stop_items", {"ss_name": ss_name}, timeout=STOP_TIMEOUT)
+
+    def _gone(self, silent):
+        self.peer.abort(f"no heartbeat for {silent:.1f} s")
+
+    def __repr__(self):
+        return f"<RobotSession {self.name} at {self.address}>"
+
+
+class MasterAgent(service.Service):
+    """The master's agent-to-agent server: hello, sessions, heartbeats, service spaces.
+
+    ``spaces`` is the ``rcmp_ms.ServiceSpaceManager`` (``describe()`` for service_space/read);
+    ``disconnect(pi_name, reason)`` tears a robot's session down for the RDAPI's r_provisioning.
+    """
+
+    name = "ic-master"
+
+    def __init__(self, config, data, table, reactor, public_ip, spaces=None):
+        self.config = config
+        self.data = data
+        self.table = table
+        self.reactor = reactor
+        self.public_ip = public_ip
+        if spaces is None:
+            spaces = _service_space_manager(reactor, table, config, public_ip, self._on_state)
+        else:  # tests give their own manager; it reports pairing changes through on_state
+            spaces.on_state = self._on_state
+        self.spaces = spaces
+        self.sessions = {}           # robot name -> RobotSession
+        self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
+        self._write = _OrderedWrites()
+        self.listening = None
+        self.address = None
+
+    # -- service ----------------------------------------------------------------------------------------
+    def startService(self):
+        super().startService()
+        self._starting = self._listen()
+
+    @defer.inlineCallbacks
+    def _listen(self):
+        while self.running and self.address is None:
+            self.address = _platform_address(self.config)
+            if self.address is None:
+                yield _sleep(self.reactor, ADDRESS_POLL)
+        if not self.running:
+            return
+        self.listening = yield ic.listen(self.reactor, self.address, self.config.ic_port, self)
+        log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
+
+    @defer.inlineCallbacks
+    def stopService(self):
+        super().stopService()
+        if self.listening is not None:
+            yield self.listening.stopListening()
+            self.listening = None
+        for name in list(self.sessions):
+            yield self._locked(name, self._end_session, self.sessions.get(name), "the master is stopping",
+                               tell_robot=True)
+        yield self.spaces.teardown_all()
+        yield self._write(lambda: None)
+
+    # -- public -----------------------------------------------------------------------------------------
+    def disconnect(self, pi_name, reason):
+        """Tear down ``pi_name``'s service space and mark it disconnected (no-op when it is not connected)."""
+        return self._locked(pi_name, lambda: self._end_session(self.sessions.get(pi_name), reason,
+                                                                 tell_robot=True))
+
+    def connected_robots(self):
+        return sorted(self.sessions)
+
+    # -- protocol handler -------------------------------------------------------------------------------
+    def request_received(self, peer, op, body):
+        body = validate(op, body, "master")
+        session = peer.info.get("session")
+        if op == "heartbeat":
+            return {}
+        if op == "hello":
+            return self._hello(peer, body)
+        if session is None or session.ended:
+            raise ic.Refused(f"{op} before an accepted hello", code="no_session")
+        if op == "item_exited":
+            if body["ss_name"] != session.name:
+                raise ic.Refused(f"robot {session.name} cannot report items of service space "
+                                 f"{body['ss_name']!r}", code="bad_request")
+            self.spaces.item_exited(body["ss_name"], body["report"])
+            return {}
+        if op == "bye":
+            log.info("robot %s is leaving: %s", session.name, body["reason"])
+            self.reactor.callLater(0, peer.close, f"robot said bye: {body['reason']}")
+            return {}
+        raise ic.Refused(f"the master agent does not serve op {op!r}", code="unknown_op")
+
+    def peer_lost(self, peer, why):
+        session = peer.info.get("session")
+        if session is None or session.ended:
+            return
+        log.warning("lost robot %s: %s", session.name, why)
+        self._locked(session.name, self._end_session, session, f"connection lost: {why}")
+
+    # -- hello ------------------------------------------------------------------------------------------
+    @defer.inlineCallbacks
+    def _hello(self, peer, body):
+        name, address = body["name"], body["address"]
+        if peer.info.get("session") is not None:
+            raise ic.Refused("hello was already accepted on this connection", code="bad_request")
+        if body["version"] != VERSION:
+            self._refuse_later(peer)
+            raise ic.Refused(f"message version {body['version']} is not supported; the master speaks "
+                             f"version {VERSION}", code="unsupported_version")
+        pi = yield threads.deferToThread(self.data.platform_instance, name)
+        if pi is None or name == self.config.name:
+            log.info("refused hello from %s (%s): not provisioned", name, peer.remote)
+            self._refuse_later(peer)
+            raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
+                             f"platform_instance/provisioning", code="not_provisioned")
+        session = yield self._locked(name, self._open_session, peer, name, address, body["robot"])
+        if session is None:
+            raise ic.Refused("the connection closed during hello", code="gone")
+        self.reactor.callLater(0, self._create_space, session, pi)
+        return {"accepted": True, "master": self.config.name, "heartbeat_interval": self.config.heartbeat_interval,
+                "heartbeat_misses": self.config.heartbeat_misses}
+
+    def _refuse_later(self, peer):
+        """Close a refused robot's connection once the answer is written."""
+        self.reactor.callLater(0, peer.close, "hello refused")
+
+    @defer.inlineCallbacks
+    def _open_session(self, peer, name, address, robot):
+        old = self.sessions.get(name)
+        if old is not None:
+            log.info("robot %s said hello again: replacing its session", name)
+            yield self._end_session(old, "replaced by a new hello from the robot")
+        if peer.closed:
+            return None
+        session = RobotSession(self, peer, name, address, robot)
+        peer.info["session"] = session
+        self.sessions[name] = session
+        yield self._write(self.data.set_connected, name, address)
+        session.watchdog.start()
+        log.info("robot %s connected from %s", name, address)
+        return session
+
+    @defer.inlineCallbacks
+    def _create_space(self, session, pi):
+        logic = yield threads.deferToThread(self.data.service_logic, pi["service_logic"])
+        if logic is None:
+            log.error("robot %s: its service logic %r is gone; not creating a service space", session.name,
+                      pi["service_logic"])
+            return
+        yield self._locked(session.name, self._create_locked, session, logic)
+
+    @defer.inlineCallbacks
+    def _create_locked(self, session, logic):
+        if session.ended:
+            return
+        try:
+            yield self.spaces.create(session.name, logic, session)
+        except Exception as exc:
+            log.error("service space of robot %s not created: %s", session.name, exc)
+
+    # -- teardown ---------------------------------------------------------------------------------------
+    @defer.inlineCallbacks
+    def _end_session(self, session, reason, tell_robot=False):
+        if session is None or session.ended:
+            return
+        session.ended = True
+        session.watchdog.stop()
+        if self.sessions.get(session.name) is session:
+            del self.sessions[session.name]
+        log.info("ending robot %s's session: %s", session.name, reason)
+        if tell_robot and not session.peer.closed:
+            try:
+                yield session.peer.request("disconnect", {"reason": reason}, timeout=self._quick())
+            except Exception as exc:
+                log.debug("robot %s not told of its disconnection: %s", session.name, exc)
+        try:
+            yield self.spaces.teardown(session.name)
+        except Exception as exc:
+            log.error("tearing down robot %s's service space: %s", session.name, exc)
+        session.peer.close(reason)
+        yield self._write(self.data.set_disconnected, session.name)
+
+    def _quick(self):
+        return max(1.0, self.config.heartbeat_interval)
+
+    def _on_state(self, pi_name, paired, space):
+        """ServiceSpaceManager callback: pairing of ``pi_name`` changed."""
+        if pi_name not in self.sessions:
+            return
+        log.info("robot %s %s", pi_name, "paired" if paired else "not paired")
+        if space is not None:
+            self._write(self.data.set_service_space, pi_name, getattr(space, "ros_master_uri", None),
+                        getattr(space, "inbound_port", None))
+        self._write(self.data.set_paired, pi_name, bool(paired))
+
+    def _locked(self, name, fn, *args, **kwargs):
+        lock = self._locks.setdefault(name, defer.DeferredLock())
+        return lock.run(fn, *args, **kwargs)
+
+
+def _sleep(clock, seconds):
+    d = defer.Deferred()
+    clock.callLater(seconds, d.callback, None)
+    return d
+
+
+# ------------------------------------------------------------------------------------------------------------
+# robot side
+
+class RobotAgent(service.Service):
+    """A robot's (or server VM's) agent: hello to the master, robot-side items on its request, heartbeats."""
+
+    name = "ic-robot"
+
+    def __init__(self, config, table, reactor, runner=None):
+        self.config = config
+        self.table = table
+        self.reactor = reactor
+        if runner is None:
+            from rcm_platform import rcmp_ms
+            runner = rcmp_ms.RobotSideRunner(reactor, table, config, on_item_exited=self._item_exited)
+        else:  # tests give their own runner
+            runner.on_item_exited = self._item_exited
+        self.runner = runner
+        self.backoff = ic.Backoff(initial=0.25, factor=2.0, cap=RETRY_CAP)
+        self.peer = None
+        self.accepted = False
+        self.address = None
+        self.watchdog = None
+        self._call = None
+        self._told_to_go = False
+        self._last_problem = None
+        self._stopped = defer.succeed(None)
+
+    # -- service ----------------------------------------------------------------------------------------
+    def startService(self):
+        super().startService()
+        self._schedule(0)
+
+    @defer.inlineCallbacks
+    def stopService(self):
+        super().stopService()
+        if self._call is not None and self._call.active():
+            self._call.cancel()
+        self._call = None
+        self._stop_watchdog()
+        peer = self.peer
+        if peer is not None and not peer.closed:
+            if self.accepted:
+                try:
+                    yield peer.request("bye", {"reason": "the robot agent is stopping"}, timeout=2.0)
+                except Exception as exc:
+                    log.debug("bye not answered: %s", exc)
+            peer.close("the robot agent is stopping")
+        yield self._stopped
+        yield self.runner.stop_all()
+
+    # -- connection loop --------------------------------------------------------------------------------
+    def _schedule(self, delay):
+        if not self.running or self._call is not None:
+            return
+        self._call = self.reactor.callLater(delay, self._attempt)
+
+    def _problem(self, message, *args):
+        """Log a connection problem: a warning the first time, then quietly while it stays the same."""
+        text = message % args
+        (log.warning if text != self._last_problem else log.debug)("%s", text)
+        self._last_problem = text
+
+    @defer.inlineCallbacks
+    def _attempt(self):
+        self._call = None
+        if not self.running:
+            return
+        self.address = _platform_address(self.config)
+        if self.address is None:
+            self._problem("waiting for the platform address (interface %s has no IPv4 address yet)",
+                          self.config.vpn_interface)
+            self._schedule(ADDRESS_POLL)
+            return
+        master = f"{self.config.ip_master}:{self.config.ic_port}"
+        try:
+            peer = yield ic.connect(self.reactor, self.config.ip_master, self.config.ic_port, self,
+                                    timeout=5.0, bind_address=self.address)
+        except Exception as exc:
+            self._problem("master %s unreachable (%s); retrying", master, exc)
+            self._schedule(self.backoff.next_delay())
+            return
+        if not self.running:
+            peer.close("the robot agent is stopping")
+            return
+        self.peer = peer
+        self.accepted = False
+        try:
+            answer = yield peer.request("hello", {"name": self.config.name, "address": self.address,
+                                                  "robot": self.config.role == "robot", "version": VERSION},
+                                        timeout=HELLO_TIMEOUT)
+        except ic.RemoteError as exc:
+            self._problem("master %s refused hello: %s", master, exc.reason)
+            peer.close("hello refused")
+            return
+        except Exception as exc:
+            self._problem("hello to master %s failed: %s", master, exc)
+            peer.abort("hello failed")
+            return
+        if peer.closed:
+            return
+        self.accepted = True
+        self._last_problem = None
+        self._told_to_go = False
+        self.backoff.reset()
+        log.info("connected to master %s as %s (%s)", master, self.config.name, self.address)
+        self.watchdog = rcmp_wd.Watchdog(
+            self.reactor, self.config.heartbeat_interval, self.config.heartbeat_misses,
+            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.config.heartbeat_interval *
+                                           self.config.heartbeat_misses),
+            last_heard=lambda: peer.last_heard,
+            on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
+            name="the master")
+        self.watchdog.start()
+        return answer
+
+    def _stop_watchdog(self):
+        if self.watchdog is not None:
+            self.watchdog.stop()
+            self.watchdog = None
+
+    def peer_lost(self, peer, why):
+        if peer is not self.peer:
+            return
+        self.peer = None
+        self._stop_watchdog()
+        was_accepted, self.accepted = self.accepted, False
+        delay = self.backoff.next_delay()
+        if self._told_to_go:
+            delay = max(delay, AFTER_DISCONNECT)
+        if not self.running:         # stopService stops the items itself
+            return
+        if not was_accepted:
+            self._schedule(delay)
+            return
+        log.warning("lost the master (%s): stopping robot-side items", why)
+        self._stopped = self.runner.stop_all()
+        self._stopped.addErrback(lambda f: log.error("stopping robot-side items: %s", f.getErrorMessage()))
+        self._stopped.addCallback(lambda _: self._schedule(delay))
+
+    # -- requests from the master -----------------------------------------------------------------------
+    def request_received(self, peer, op, body):
+        body = validate(op, body, "robot")
+        if op == "heartbeat":
+            return {}
+        if not self.accepted and op != "disconnect":
+            raise ic.Refused(f"{op} before the master accepted hello", code="no_session")
+        if op == "start_items":
+            log.info("master asks to start %d item(s) of service space %s", len(body["items"]), body["ss_name"])
+            return self.runner.start_items(body["ss_name"], body["ros_master_uri"], body["items"],
+                                           body["start_ros_master_port"])
+        if op == "stop_items":
+            log.info("master asks to stop the items of service space %s", body["ss_name"])
+            return self.runner.stop_items(body["ss_name"]).addCallback(lambda _: {})
+        if op == "disconnect":
+            log.warning("the master disconnects this robot: %s", body["reason"])
+            self._told_to_go = True
+            return {}
+        raise ic.Refused(f"the robot agent does not serve op {op!r}", code="unknown_op")
+
+    def _item_exited(self, ss_name, report):
+        """RobotSideRunner callback: an R item of ``ss_name`` exited; tell the master."""
+        peer = self.peer
+        if peer is None or peer.closed or not self.accepted:
+            return
+        d = peer.request("item_exited", {"ss_name": ss_name, "report": report},
+                         timeout=self.config.heartbeat_interval * self.config.heartbeat_misses)
+        d.addErrback(lambda f: log.warning("could not report the exit of %s to the master: %s",
+                                           report.get("name"), f.getErrorMessage()))

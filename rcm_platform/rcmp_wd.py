@@ -1,0 +1,71 @@
+"""Heartbeats ("watchdog"): who is late, and the callback when a peer is declared gone.
+
+Both ends of an agent-to-agent connection run one ``Watchdog`` each. Every ``interval`` seconds it looks at when
+the peer was last heard from (any frame counts: answers to our beats, the peer's own beats, other requests);
+if the peer has been silent for ``misses * interval`` seconds it stops and calls ``on_gone(silent_seconds)``
+once; otherwise it sends one beat through ``send_beat()`` (a callable returning a Deferred, whose failure only
+means "not heard", never an error). Time comes from the ``clock`` (the reactor, or ``task.Clock`` in tests).
+"""
+
+import logging
+
+from twisted.internet import task
+
+log = logging.getLogger("rcmp.wd")
+
+
+class Watchdog:
+    """Beats to one peer and declares it gone after ``misses`` intervals of silence."""
+
+    def __init__(self, clock, interval, misses, send_beat, last_heard, on_gone, name="peer"):
+        if interval <= 0:
+            raise ValueError(f"heartbeat interval must be positive, got {interval!r}")
+        if misses < 1:
+            raise ValueError(f"heartbeat misses must be at least 1, got {misses!r}")
+        self.clock = clock
+        self.interval = float(interval)
+        self.misses = int(misses)
+        self.send_beat = send_beat
+        self.last_heard = last_heard
+        self.on_gone = on_gone
+        self.name = name
+        self.gone = False
+        self._loop = None
+
+    @property
+    def limit(self):
+        """Seconds of silence after which the peer is gone."""
+        return self.interval * self.misses
+
+    @property
+    def running(self):
+        return self._loop is not None and self._loop.running
+
+    def start(self):
+        if self.running:
+            return
+        self._loop = task.LoopingCall(self._tick)
+        self._loop.clock = self.clock
+        self._loop.start(self.interval, now=False)
+
+    def stop(self):
+        if self.running:
+            self._loop.stop()
+        self._loop = None
+
+    def silent_for(self):
+        """Seconds since the peer was last heard from."""
+        return self.clock.seconds() - self.last_heard()
+
+    def _tick(self):
+        silent = self.silent_for()
+        if silent >= self.limit:
+            self.stop()
+            if not self.gone:
+                self.gone = True
+                log.warning("%s silent for %.1f s (limit %.1f s): gone", self.name, silent, self.limit)
+                self.on_gone(silent)
+            return
+        d = self.send_beat()
+        if d is not None:
+            d.addErrback(lambda f: log.debug("heartbeat to %s not answered: %s", self.name, f.getErrorMessage()))

@@ -1,0 +1,94 @@
+"""Heartbeats with a fake clock: beats every interval, a peer silent for misses*interval is gone, once."""
+
+from twisted.internet import defer, task
+from twisted.trial import unittest
+
+from rcm_platform.rcmp_wd import Watchdog
+
+
+class Peer:
+    """A fake peer: records beats; answers them (moves last_heard) only while ``answering``."""
+
+    def __init__(self, clock):
+        self.clock = clock
+        self.heard = clock.seconds()
+        self.beats = []
+        self.answering = True
+
+    def beat(self):
+        self.beats.append(self.clock.seconds())
+        if self.answering:
+            self.heard = self.clock.seconds()
+            return defer.succeed({})
+        return defer.fail(TimeoutError("no answer"))
+
+
+class WatchdogTests(unittest.TestCase):
+
+    def setUp(self):
+        self.clock = task.Clock()
+        self.peer = Peer(self.clock)
+        self.gone = []
+        self.dog = Watchdog(self.clock, interval=2.0, misses=3, send_beat=self.peer.beat,
+                            last_heard=lambda: self.peer.heard, on_gone=self.gone.append, name="test peer")
+
+    def test_beats_every_interval_while_answered(self):
+        self.dog.start()
+        self.clock.pump([2.0] * 10)
+        self.assertEqual(self.peer.beats, [2.0 * n for n in range(1, 11)])
+        self.assertEqual(self.gone, [])
+        self.assertTrue(self.dog.running)
+
+    def test_no_beat_before_the_first_interval(self):
+        self.dog.start()
+        self.clock.advance(1.9)
+        self.assertEqual(self.peer.beats, [])
+
+    def test_silent_peer_is_gone_after_misses_times_interval(self):
+        self.dog.start()
+        self.clock.advance(2.0)                      # answered at t=2
+        self.peer.answering = False
+        self.clock.advance(2.0)                      # t=4: silent 2 s
+        self.clock.advance(2.0)                      # t=6: silent 4 s
+        self.assertEqual(self.gone, [])
+        self.clock.advance(2.0)                      # t=8: silent 6 s = 3 * 2 s
+        self.assertEqual(self.gone, [6.0])
+        self.assertFalse(self.dog.running)
+
+    def test_gone_is_reported_once_and_beats_stop(self):
+        self.dog.start()
+        self.peer.answering = False
+        self.clock.pump([2.0] * 10)
+        self.assertEqual(len(self.gone), 1)
+        self.assertEqual(self.peer.beats, [2.0, 4.0])  # no beat sent at the tick that declares it gone
+
+    def test_any_frame_from_the_peer_keeps_it_alive(self):
+        self.dog.start()
+        self.peer.answering = False
+        for _ in range(10):
+            self.clock.advance(2.0)
+            self.peer.heard = self.clock.seconds() - 1.0   # the peer's own beats arrive between ours
+        self.assertEqual(self.gone, [])
+
+    def test_stopped_watchdog_neither_beats_nor_declares(self):
+        self.dog.start()
+        self.dog.stop()
+        self.peer.answering = False
+        self.clock.pump([2.0] * 10)
+        self.assertEqual((self.peer.beats, self.gone), ([], []))
+
+    def test_restart_after_stop(self):
+        self.dog.start()
+        self.dog.stop()
+        self.dog.start()
+        self.clock.advance(2.0)
+        self.assertEqual(self.peer.beats, [2.0])
+
+    def test_bad_settings_are_rejected(self):
+        with self.assertRaises(ValueError):
+            Watchdog(self.clock, 0, 3, self.peer.beat, lambda: 0, self.gone.append)
+        with self.assertRaises(ValueError):
+            Watchdog(self.clock, 1.0, 0, self.peer.beat, lambda: 0, self.gone.append)
+
+    def test_limit(self):
+        self.assertEqual(self.dog.limit, 6.0)
