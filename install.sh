@@ -57,11 +57,12 @@ EOF
   --bin-dir DIR            where rcmp_n goes (default /usr/local/bin)
   --lib-dir DIR            where the rcm_platform package goes (default: /usr/bin/python3's site dist-packages)
   --skip-deps              do not run apt-get (the dependencies are already installed)
+  --dry-run                ask (or take) every answer, show the configuration and the steps, change nothing
   -h, --help               this text
 EOF
 }
 
-die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+die() { echo "$PROG: error: $1" >&2; exit "${2:-1}"; }
 usage_error() { echo "$PROG: error: $*" >&2; echo "Try './install.sh --help'." >&2; exit 2; }
 trim() { local s=$1; s=${s#"${s%%[![:space:]]*}"}; s=${s%"${s##*[![:space:]]}"}; printf '%s' "$s"; }
 
@@ -122,6 +123,7 @@ check_path() {
 # --- command line ----------------------------------------------------------------------------------------------
 INTERACTIVE=yes
 SKIP_DEPS=no
+DRY_RUN=no
 declare -A OPT=()
 set_opt() {  # set_opt KEY CHECKER OPTION VALUE
     local v
@@ -134,7 +136,17 @@ while [ $# -gt 0 ]; do
         -h|--help) usage; exit 0 ;;
         -n|--non-interactive) INTERACTIVE=no; shift; continue ;;
         --skip-deps) SKIP_DEPS=yes; shift; continue ;;
+        --dry-run) DRY_RUN=yes; shift; continue ;;
         --*=*) set -- "${opt%%=*}" "${opt#*=}" "${@:2}"; continue ;;
+    esac
+    case "$opt" in
+        --replace-ws|--start|--inbound-ports|--vpn-interface|--vpn-address|--ic-port|--ros-port-base|--home) ;;
+        --workspace|--bin-dir|--lib-dir|--service-name) ;;
+        --fiware|--ext-interface|--ext-address|--ext-port)
+            [ "$ROLE" = master ] || usage_error "unknown option '$opt' for the rcm robot installer" ;;
+        --robot|--name|--ip-master)
+            [ "$ROLE" = robot ] || usage_error "unknown option '$opt' for the rcm master installer" ;;
+        *) usage_error "unknown option '$opt'" ;;
     esac
     [ $# -ge 2 ] || usage_error "$opt needs a value"
     val=$2
@@ -176,7 +188,7 @@ HOME_DIR=${OPT[home]:-/opt/rcm-platform}
 WS=${OPT[workspace]:-$HOME/rcmp_ws}
 SERVICE=${OPT[service_name]:-rcmpd}
 BIN_DIR=${OPT[bin_dir]:-/usr/local/bin}
-LIB_DIR=${OPT[lib_dir]:-$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths(vars={"base": "/usr/local"})["purelib"])')}
+LIB_DIR=${OPT[lib_dir]:-$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')}
 if [ "$ROLE" = master ]; then CFG_FILE=$HOME_DIR/.init.cfg; else CFG_FILE=$HOME_DIR/init.cfg; fi
 
 # --- the current configuration gives the defaults of a re-run ---------------------------------------------------
@@ -210,6 +222,7 @@ ask() {  # ask KEY CHECKER DEFAULT QUESTION: the option's value, or the user's a
     while true; do
         printf '%s ' "$question"
         IFS= read -r answer || { echo; die "no answer to \"$question\" (end of input)"; }
+        [ -t 0 ] || echo "$answer"  # answers from a pipe or file: show them, as a terminal would
         answer=$(trim "$answer")
         [ -n "$answer" ] || answer=$default
         if [ -z "$answer" ]; then echo "An answer is needed."; continue; fi
@@ -220,7 +233,7 @@ ask() {  # ask KEY CHECKER DEFAULT QUESTION: the option's value, or the user's a
 yn_question() {  # the ([Y]es/no) or (yes/[N]o) suffix
     if [ "$1" = yes ]; then echo "([Y]es/no)?"; else echo "(yes/[N]o)?"; fi
 }
-with_default() { if [ -n "$1" ]; then echo "[$1]:"; else echo ":"; fi; }
+with_default() { if [ -n "$1" ]; then echo " [$1]:"; else echo ":"; fi; }
 
 echo "RCM $ROLE installation from $HERE"
 if [ -d "$WS" ]; then
@@ -256,7 +269,7 @@ if [ "$ROLE" = master ]; then
     fi
     ask fiware check_fiware "$have_zips" "Do you want FIWARE support (firos, rcm_driver and robotics_msgs in the workspace) $(yn_question "$have_zips")"
     ports_default=$(current inbound_open_ports check_ports); ports_default=${ports_default:-$DEFAULT_PORTS}
-    ask inbound_open_ports check_ports "$ports_default" "Inbound open ports, comma separated $(with_default "$ports_default")"
+    ask inbound_open_ports check_ports "$ports_default" "Inbound open ports, comma separated$(with_default "$ports_default")"
 else
     robot_default=$(current robot check_yesno); robot_default=${robot_default:-yes}
     ask robot check_yesno "$robot_default" "Is this machine a robot (no: a virtual machine on the server side) $(yn_question "$robot_default")"
@@ -264,16 +277,19 @@ else
     if [ -z "$name_default" ]; then
         name_default=$(check_name "$(hostname -s 2>/dev/null | tr '.-' '__')") || name_default=
     fi
-    ask name check_name "$name_default" "Name of this platform instance (as provisioned on the master) $(with_default "$name_default")"
+    ask name check_name "$name_default" "Name of this platform instance (as provisioned on the master)$(with_default "$name_default")"
     master_default=$(current ip_master check_ipv4)
     if [ -z "$master_default" ]; then
         own=$(vpn_guess || true)
         [ -n "$own" ] && master_default=${own%.*}.1
     fi
-    ask ip_master check_ipv4 "$master_default" "VPN address of the rcm master $(with_default "$master_default")"
+    ask ip_master check_ipv4 "$master_default" "VPN address of the rcm master$(with_default "$master_default")"
     ANS[inbound_open_ports]=${OPT[inbound_open_ports]:-$(current inbound_open_ports check_ports)}
 fi
 ask start check_yesno yes "Do you want to start the rcm daemon now $(yn_question yes)"
+if [ "$ROLE" = robot ] && [ "${ANS[robot]}" = yes ] && [ -n "${ANS[ros_port_base]}" ]; then
+    die "ros_port_base (--ros-port-base) is only for a server virtual machine (--robot no): nothing was changed" 2
+fi
 
 # --- the configuration file ----------------------------------------------------------------------------------------
 CFG_TMP=$(mktemp)
@@ -298,6 +314,22 @@ trap 'rm -f "$CFG_TMP"' EXIT
     done
 } >"$CFG_TMP"
 chmod 0644 "$CFG_TMP"
+
+if [ "$DRY_RUN" = yes ]; then
+    echo "Dry run: nothing was changed. The installation would:"
+    [ "$SKIP_DEPS" = yes ] || echo "  - install the missing dependencies of the rcm $ROLE with apt-get"
+    if [ -d "$WS" ] && [ "${ANS[replace_ws]}" = yes ]; then echo "  - replace the workspace $WS"
+    elif [ -d "$WS" ]; then echo "  - keep the workspace $WS"
+    else echo "  - create the workspace $WS"; fi
+    if [ "$ROLE" = master ] && [ "${ANS[fiware]}" = yes ]; then
+        echo "  - unpack ${COMPONENT_ZIPS[*]} into $WS/src and build it with catkin_make"
+    fi
+    echo "  - install $BIN_DIR/rcmp_n, $LIB_DIR/rcm_platform, $HOME_DIR/rosconsole.config and /etc/init.d/$SERVICE"
+    if [ "${ANS[start]}" = yes ]; then echo "  - start the rcm daemon ($SERVICE)"; else echo "  - not start the rcm daemon"; fi
+    echo "  - write $CFG_FILE:"
+    sed 's/^/    /' "$CFG_TMP"
+    exit 0
+fi
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then "$@"; else

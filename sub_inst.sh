@@ -17,7 +17,7 @@ export LC_ALL=C
 PROG=sub_inst.sh
 export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
 
-die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+die() { echo "$PROG: error: $1" >&2; exit "${2:-1}"; }
 [ "$(id -u)" -eq 0 ] || die "must run as root (install.sh runs it through sudo)"
 
 # ROS 1 from Debian (the ROS part of scripts/install-deps.sh), the agent's own needs, and the tools the

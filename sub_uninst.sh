@@ -8,7 +8,7 @@ set -eo pipefail
 export LC_ALL=C
 PROG=sub_uninst.sh
 export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
-die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+die() { echo "$PROG: error: $1" >&2; exit "${2:-1}"; }
 [ "$(id -u)" -eq 0 ] || die "must run as root (uninstall.sh runs it through sudo)"
 
 SERVICE=rcmpd
@@ -25,7 +25,7 @@ done
 # where things are: the settings written at installation, else the standard places
 RCMP_BIN=/usr/local/bin/rcmp_n
 RCMP_HOME=/opt/rcm-platform
-RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths(vars={"base": "/usr/local"})["purelib"])')
+RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 if [ -r "/etc/default/$SERVICE" ]; then
     # only the known keys, never the file as a script
     while IFS='=' read -r key value; do

@@ -22,7 +22,7 @@ dependencies installed with apt-get are kept.
   -h, --help            this text
 USAGE
 }
-die() { echo "$PROG: error: $*" >&2; exit "${2:-1}"; }
+die() { echo "$PROG: error: $1" >&2; exit "${2:-1}"; }
 
 SERVICE=rcmpd
 KEEP_WS=no
