@@ -354,6 +354,20 @@ def test_load_message_class_refuses_bad_names(name, problem):
         rc.dict_to_message({}, name)
 
 
+def test_class_loader_failures_name_the_field():
+    def loader(type_name):
+        return None if type_name == "geometry_msgs/Pose" else rc.load_message_class(type_name)
+
+    assert list(rc.dict_to_message({"poses": []}, "geometry_msgs/PoseArray", class_loader=loader).poses) == []
+    with pytest.raises(rc.ConversionError) as caught:
+        rc.dict_to_message({"poses": [POSE]}, "geometry_msgs/PoseArray", class_loader=loader)
+    assert str(caught.value) == "geometry_msgs/PoseArray.poses: unknown message type geometry_msgs/Pose"
+    with pytest.raises(rc.ConversionError) as caught:
+        rc.dict_to_message({"many": [{}]}, ALL_KINDS, class_loader=rc.load_message_class)
+    assert str(caught.value) == ("test_msgs/AllKinds.many: unknown message type: no ROS package 'test_msgs' "
+                                 "with messages is installed")
+
+
 def test_load_message_class_never_imports_plain_python_modules():
     assert "this" not in sys.modules
     with pytest.raises(rc.ConversionError):

@@ -2,7 +2,7 @@
 
 Owns the mapping between ROS 1 (genpy) message instances and plain Python values that ``json.dumps`` accepts,
 for any message type, and the loading of message classes by their ``pkg/Type`` name. Pure: no running node, no
-ROS parameters, no module state besides read-only tables and genpy's own class cache.
+ROS parameters, no module state besides read-only tables and a cache of the classes already loaded.
 
 Public API
 ----------
@@ -174,9 +174,20 @@ def _has_msg_subpackage(package):
     return any(os.path.isdir(os.path.join(location, "msg")) for location in spec.submodule_search_locations)
 
 
+# Classes found so far, by every name they were asked for; failures are not kept (a package may be built later).
+_LOADED_CLASSES = {}
+
+
 def load_message_class(type_name):
     """The message class for ``"pkg/Type"`` (or ``"pkg.msg.Type"``); ConversionError when the name is malformed
     or no such type is installed."""
+    cls = _LOADED_CLASSES.get(type_name) if isinstance(type_name, str) else None
+    if cls is None:
+        cls = _LOADED_CLASSES[type_name] = _find_message_class(type_name)
+    return cls
+
+
+def _find_message_class(type_name):
     if not isinstance(type_name, str):
         raise ConversionError(_type_name(type_name), "", "a message type must be a str like 'pkg/Type'")
     type_name = _TYPE_ALIASES.get(type_name, type_name)
@@ -334,6 +345,9 @@ def _field_from_json(value, field_type, current, ctx, path):
         raise ctx.error(path, "expected list, got %s" % _type_name(value))
     if fixed is not None and len(value) != fixed:
         raise ctx.error(path, "expected %d items, got %d" % (fixed, len(value)))
+    if kind == "message" and value:  # one class lookup for the whole array
+        cls = _element_class(base, ctx, path)
+        return [_fill_message(cls(), item, ctx, "%s[%d]" % (path, index)) for index, item in enumerate(value)]
     convert = _FROM_JSON[kind]
     return [convert(item, base, None, ctx, "%s[%d]" % (path, index)) for index, item in enumerate(value)]
 
@@ -418,14 +432,18 @@ def _checked_int(value, bounds, name, ctx, path):
 
 def _nested_from_json(value, base, current, ctx, path):
     if current is None:
-        try:
-            cls = ctx.class_loader(base)
-        except ConversionError as exc:
-            raise ctx.error(path, exc.problem) from None
-        if cls is None:
-            raise ctx.error(path, "unknown message type %s" % base)
-        current = cls()
+        current = _element_class(base, ctx, path)()
     return _fill_message(current, value, ctx, path)
+
+
+def _element_class(base, ctx, path):
+    try:
+        cls = ctx.class_loader(base)
+    except ConversionError as exc:
+        raise ctx.error(path, exc.problem) from None
+    if not (isinstance(cls, type) and _is_message(cls)):
+        raise ctx.error(path, "unknown message type %s" % base)
+    return cls
 
 
 def _binary_from_json(value, fixed, ctx, path):
