@@ -1,0 +1,158 @@
+#!/usr/bin/env python3
+"""FIROS: maps the topics of ROS robots to entities of an NGSI context broker (Orion) and broker commands back to
+ROS topics (CONTRACTS §3). Run as `rosrun firos core.py [-P PORT] [--config DIR]`.
+
+This file only assembles the node: command line, configuration (one clear line and exit 1 when it is wrong),
+logging, the notification address, the parts in `include/`, the discovery loop in the main thread, and an
+orderly shutdown (subscriptions and entities removed) on SIGINT/SIGTERM or a ROS shutdown.
+"""
+
+import argparse
+import logging
+import os
+import signal
+import socket
+import sys
+import threading
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+from include.config import PACKAGE_CONFIG_DIR, ConfigError, load_descriptions, load_settings  # noqa: E402
+from include.whitelist import Whitelist  # noqa: E402
+
+log = logging.getLogger("firos")
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog="core.py", description="FIROS: ROS robots as NGSI entities.")
+    parser.add_argument("-P", "--port", type=int, help="HTTP server port (overrides server.port of config.json)")
+    parser.add_argument("--config", metavar="DIR", default=PACKAGE_CONFIG_DIR,
+                        help="configuration folder with config.json, whitelist.json, robotdescriptions.json "
+                             "(default: the package's config/)")
+    return parser.parse_args(argv)
+
+
+def notification_address(settings):
+    """(address, port) the broker sends notifications to: endpoint, else the configured interface's address."""
+    port = settings.endpoint_port or settings.server_port
+    if settings.endpoint_address:
+        return settings.endpoint_address, port
+    path = os.path.join(settings.config_dir, "config.json")
+    if settings.interface == "public":
+        from include.ngsi_client import local_address_towards
+        try:
+            return local_address_towards(settings.broker_address, settings.broker_port), port
+        except OSError as exc:
+            raise ConfigError(path, f"cannot find the address towards the broker {settings.broker_address}: "
+                                    f"{exc}") from None
+    import netifaces
+    if settings.interface not in netifaces.interfaces():
+        raise ConfigError(path, f"interface {settings.interface!r} does not exist on this machine")
+    addresses = netifaces.ifaddresses(settings.interface).get(netifaces.AF_INET)
+    if not addresses:
+        raise ConfigError(path, f"interface {settings.interface!r} has no IPv4 address")
+    return addresses[0]["addr"], port
+
+
+def load(args):
+    settings = load_settings(args.config)
+    if args.port is not None:
+        if not 0 < args.port < 65536:
+            raise ConfigError("-P", f"{args.port} is not a TCP port number")
+        settings.server_port = args.port
+        if settings.endpoint_port is None:
+            settings.endpoint_port = args.port
+    whitelist = Whitelist.load(args.config)
+    descriptions = load_descriptions(args.config)
+    return settings, whitelist, descriptions
+
+
+def setup_logging(level):
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("[%(levelname)s] [%(asctime)s] %(name)s: %(message)s"))
+    log.addHandler(handler)
+    log.setLevel({"WARN": "WARNING", "FATAL": "CRITICAL"}.get(level, level))
+    log.propagate = False
+
+
+def main(argv=None):
+    import rospy
+    argv = rospy.myargv(sys.argv if argv is None else argv)[1:]
+    args = parse_args(argv)
+    try:
+        settings, whitelist, descriptions = load(args)
+        address, port = notification_address(settings)
+    except ConfigError as exc:
+        print(f"firos: configuration error: {exc}", file=sys.stderr)
+        return 1
+    setup_logging(settings.log_level)
+
+    from include import server as http
+    from include.bridge import Firos
+    from include.discovery import GraphReader
+    from include.ngsi_client import NgsiClient
+    from include.rcm_bridge import RosControl
+    from include.sender import Sender
+    from include.subscriptions import Subscriptions
+    from include.topics import TopicHandler
+
+    try:
+        httpd = http.make_server(None, settings.server_port)
+    except OSError as exc:
+        print(f"firos: cannot listen on port {settings.server_port}: {exc.strerror}", file=sys.stderr)
+        return 1
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    rospy.init_node("firos", anonymous=False, disable_signals=True)
+
+    url = f"http://{address}:{port}/firos"
+    holder = {}
+    sender = Sender(NgsiClient(settings), settings,
+                    on_created=lambda r: holder["firos"].entity_created(r),
+                    on_removed=lambda r: holder["firos"].entity_removed(r),
+                    on_recovered=lambda: subscriptions.renew_all())
+    subscriptions = Subscriptions(NgsiClient(settings), settings, url,
+                                  on_lost=lambda r: holder["firos"].entity_lost(r))
+    topics = TopicHandler(sender)
+    firos = Firos(settings, whitelist, descriptions, sender, subscriptions, topics, GraphReader("/firos"),
+                  NgsiClient(settings))
+    holder["firos"] = firos
+    control = RosControl(firos)
+    firos.events = control
+    httpd.RequestHandlerClass.firos = firos
+
+    sender.start()
+    subscriptions.start()
+    control.start()
+    http.serve_in_thread(httpd)
+    log.info("FIROS up: HTTP on port %d, broker %s:%d (NGSI %s), notifications to %s", settings.server_port,
+             settings.broker_address, settings.broker_port, settings.ngsi_version, url)
+
+    while not stop.is_set() and not rospy.is_shutdown():
+        try:
+            firos.scan()
+        except (OSError, socket.error) as exc:
+            log.warning("cannot read the ROS graph: %s", exc)
+        except Exception:  # discovery must go on whatever one look at the graph met
+            log.exception("robot discovery failed")
+        if settings.discovery_interval <= 0:
+            stop.wait()
+        else:
+            stop.wait(settings.discovery_interval)
+
+    log.info("FIROS stopping: removing subscriptions and entities")
+    httpd.shutdown()
+    httpd.server_close()
+    control.stop()
+    firos.disconnect_all()
+    sender.wait_idle(3.0)
+    subscriptions.stop()
+    sender.stop()
+    rospy.signal_shutdown("FIROS stopped")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

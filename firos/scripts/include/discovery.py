@@ -1,0 +1,146 @@
+"""Robots from the ROS graph: which robots exist and which of their topics the whitelist maps.
+
+A robot is the first namespace of a topic (`/turtle1/pose` → robot `turtle1`, topic `pose`); message types come
+from the master (`getTopicTypes`). FIROS's own endpoints do not count, so a topic only FIROS subscribes to is not a
+sign that the robot listens. Owns the graph reading (rosgraph, no rospy) and the topic naming rules:
+`attribute_name("move_base/goal") == "move_base.goal"` and `python_type("std_msgs/String") == "std_msgs.msg.String"`.
+"""
+
+from dataclasses import dataclass, field
+
+import rosgraph
+
+IGNORED_TOPICS = ("/rosout", "/rosout_agg")
+IGNORED_NAMESPACES = ("firos", "rcm")
+ROS_TO_BROKER_KIND = {"publisher": "subscriber", "subscriber": "publisher"}
+
+
+@dataclass
+class TopicInfo:
+    """One mapped topic of a robot. ``kinds`` ⊆ {"publisher", "subscriber"} (the broker's point of view)."""
+    name: str                  # full ROS name, "/turtle1/cmd_vel"
+    relative: str              # relative to the robot namespace, "cmd_vel"
+    msg_type: str              # "geometry_msgs/Twist"
+    kinds: set = field(default_factory=set)
+
+    @property
+    def attribute(self):
+        return attribute_name(self.relative)
+
+
+def attribute_name(relative_topic):
+    return relative_topic.strip("/").replace("/", ".")
+
+
+def topic_from_attribute(attribute):
+    return attribute.replace(".", "/")
+
+
+def python_type(msg_type):
+    """"pkg/Type" → "pkg.msg.Type" (the attribute type FIROS writes)."""
+    if "/" in msg_type:
+        pkg, name = msg_type.split("/", 1)
+        return f"{pkg}.msg.{name}"
+    return msg_type
+
+
+def ros_type(attr_type):
+    """"pkg.msg.Type" (or "pkg/Type") → "pkg/Type"; None when it is neither."""
+    if not isinstance(attr_type, str):
+        return None
+    if "/" in attr_type and attr_type.count("/") == 1:
+        return attr_type
+    parts = attr_type.split(".")
+    if len(parts) == 3 and parts[1] == "msg" and all(parts):
+        return f"{parts[0]}/{parts[2]}"
+    return None
+
+
+def split_topic(topic):
+    """("turtle1", "pose") for "/turtle1/pose"; None for topics without a robot namespace."""
+    parts = topic.strip("/").split("/", 1)
+    if len(parts) < 2 or not parts[0] or not parts[1]:
+        return None
+    return parts[0], parts[1]
+
+
+class GraphReader:
+    """Reads the ROS master's view of topics, leaving out ``own_node``'s endpoints."""
+
+    def __init__(self, own_node="/firos", master_uri=None):
+        self.own_node = own_node
+        self.master = rosgraph.Master(own_node + "_discovery", master_uri=master_uri)
+
+    def topics(self):
+        """{topic: (msg_type, has_publishers, has_subscribers)} for topics with some endpoint besides FIROS."""
+        pubs, subs, _ = self.master.getSystemState()
+        types = dict(self.master.getTopicTypes())
+        publishers = {t: [n for n in nodes if n != self.own_node] for t, nodes in pubs}
+        subscribers = {t: [n for n in nodes if n != self.own_node] for t, nodes in subs}
+        result = {}
+        for topic in set(publishers) | set(subscribers):
+            if topic in IGNORED_TOPICS or topic not in types:
+                continue
+            has_pub, has_sub = bool(publishers.get(topic)), bool(subscribers.get(topic))
+            if has_pub or has_sub:
+                result[topic] = (types[topic], has_pub, has_sub)
+        return result
+
+
+def robots_from_graph(graph_topics, whitelist, only=None):
+    """{robot: {relative topic: TopicInfo}} of whitelisted robots and topics found in ``graph_topics``.
+
+    A topic someone publishes is a "subscriber" topic when the whitelist lists it so (FIROS forwards it to the
+    broker); a topic listed as "publisher" becomes one whoever else uses it (FIROS publishes broker commands).
+    """
+    robots = {}
+    for topic, (msg_type, has_pub, _has_sub) in graph_topics.items():
+        split = split_topic(topic)
+        if split is None:
+            continue
+        robot, relative = split
+        if robot in IGNORED_NAMESPACES or (only is not None and robot != only):
+            continue
+        if not whitelist.robot_allowed(robot):
+            continue
+        listed = whitelist.topic_kinds(robot, relative)
+        kinds = set()
+        if "subscriber" in listed and has_pub:
+            kinds.add("subscriber")
+        if "publisher" in listed:
+            kinds.add("publisher")
+        if kinds:
+            robots.setdefault(robot, {})[relative] = TopicInfo(topic, relative, msg_type, kinds)
+    return robots
+
+
+def robot_from_rcm(robot, info, whitelist):
+    """{relative topic: TopicInfo} from rcm_driver's firos_info answer for ``robot`` (the whole service space).
+
+    ``info`` is {"topics": [{"name", "msg", "type": "publisher"|"subscriber"}]}; a topic may be listed twice.
+    rcm_driver's "type" is the ROS point of view (rcm/README.md): a topic some node publishes is one FIROS
+    forwards to the broker ("subscriber" from the broker's point of view), and the other way round.
+    Topic names are made relative to the robot's namespace when they are under it. When some whitelist entry
+    matches the robot, it filters the topics as usual; otherwise every topic rcm_driver reported is mapped.
+    """
+    topics = {}
+    filtered = whitelist.robot_allowed(robot)
+    for entry in info.get("topics", []) if isinstance(info, dict) else []:
+        if not isinstance(entry, dict):
+            continue
+        name, msg, kind = entry.get("name"), entry.get("msg"), entry.get("type")
+        if not isinstance(name, str) or not isinstance(msg, str) or kind not in ("publisher", "subscriber"):
+            continue
+        full = "/" + name.strip("/")
+        if full in IGNORED_TOPICS or full.split("/")[1] in IGNORED_NAMESPACES:
+            continue
+        relative = full.strip("/")
+        if relative.startswith(robot + "/"):
+            relative = relative[len(robot) + 1:]
+        kind = ROS_TO_BROKER_KIND[kind]
+        if filtered and kind not in whitelist.topic_kinds(robot, relative):
+            continue
+        msg_type = ros_type(msg) or msg
+        info_entry = topics.setdefault(relative, TopicInfo(full, relative, msg_type, set()))
+        info_entry.kinds.add(kind)
+    return topics

@@ -1,0 +1,120 @@
+"""ROS topic handling for FIROS: the rospy Subscribers that feed the sender and the Publishers that carry broker
+commands into ROS, per robot, plus the message "structure" shown by `GET /robots`.
+
+Owns every rospy Subscriber/Publisher FIROS makes for robots. Subscriber callbacks only hand the message to the
+sender (no conversion, no I/O). A Publisher created for a topic that nobody uses yet is latched, so that a
+subscriber arriving a moment later (`rostopic echo`) still gets the command; for a topic with known subscribers,
+the first publish waits (briefly) until they are connected, since rospy drops messages published before that.
+"""
+
+import logging
+import threading
+import time
+
+import rosgraph
+import rospy
+
+from include.discovery import python_type
+from include.ros_conversion import load_message_class
+
+log = logging.getLogger("firos.topics")
+
+PRIMITIVES = {"bool", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64", "uint64", "float32",
+              "float64", "string", "time", "duration", "byte", "char"}
+
+
+def structure(msg_type, depth=0):
+    """{field: type or nested structure} of a message type ("pkg/Type"); arrays shown as "type[]"."""
+    cls = load_message_class(msg_type)
+    result = {}
+    for name, slot_type in zip(cls.__slots__, cls._slot_types):
+        base = slot_type.split("[", 1)[0]
+        suffix = slot_type[len(base):]
+        if base in PRIMITIVES or depth > 8:
+            result[name] = slot_type
+            continue
+        nested = "std_msgs/Header" if base == "Header" else base
+        inner = structure(nested, depth + 1)
+        result[name] = [inner] if suffix else inner
+    return result
+
+
+def wait_for_subscribers(publisher, topic, timeout=1.0, master_uri=None, own_node="/firos"):
+    """Wait until ``publisher`` is connected to every subscriber the master lists for ``topic`` (or timeout)."""
+    try:
+        _, subs, _ = rosgraph.Master(own_node, master_uri=master_uri).getSystemState()
+        expected = len([n for t, nodes in subs if t == topic for n in nodes if n != own_node])
+    except Exception:  # the master is gone: nothing to wait for
+        return
+    deadline = time.monotonic() + timeout
+    while publisher.get_num_connections() < expected and time.monotonic() < deadline:
+        time.sleep(0.01)  # polling rospy's connection count; rospy offers no event for it
+
+
+class TopicHandler:
+    """The rospy endpoints FIROS keeps for each robot."""
+
+    def __init__(self, sender):
+        self.sender = sender
+        self._lock = threading.Lock()
+        self._subscribers = {}   # robot -> {topic: rospy.Subscriber}
+        self._publishers = {}    # topic -> (robot, rospy.Publisher, msg_type, fresh)
+
+    def subscribe(self, robot, info):
+        """Forward messages of ``info`` (a TopicInfo) to the broker as attribute ``info.attribute``."""
+        with self._lock:
+            if info.name in self._subscribers.get(robot, {}):
+                return False
+        cls = load_message_class(info.msg_type)
+        attr, atype = info.attribute, python_type(info.msg_type)
+        offer = self.sender.offer
+
+        def callback(msg):
+            offer(robot, attr, atype, msg)
+
+        sub = rospy.Subscriber(info.name, cls, callback, queue_size=10)
+        with self._lock:
+            self._subscribers.setdefault(robot, {})[info.name] = sub
+        log.info("forwarding %s (%s) to the broker as %s.%s", info.name, info.msg_type, robot, attr)
+        return True
+
+    def publisher(self, robot, topic, msg_type, known_subscribers):
+        """The Publisher FIROS uses for ``topic`` (created on first use)."""
+        with self._lock:
+            entry = self._publishers.get(topic)
+            if entry is not None and entry[2] == msg_type:
+                return entry[1]
+        cls = load_message_class(msg_type)
+        pub = rospy.Publisher(topic, cls, queue_size=10, latch=not known_subscribers)
+        with self._lock:
+            old = self._publishers.get(topic)
+            self._publishers[topic] = (robot, pub, msg_type, True)
+        if old is not None:
+            old[1].unregister()
+        log.info("publishing broker commands of %s on %s (%s)", robot, topic, msg_type)
+        return pub
+
+    def publish(self, robot, topic, msg_type, msg, known_subscribers):
+        pub = self.publisher(robot, topic, msg_type, known_subscribers)
+        with self._lock:
+            entry = self._publishers.get(topic)
+            fresh = entry is not None and entry[3]
+            if fresh:
+                self._publishers[topic] = entry[:3] + (False,)
+        if fresh and known_subscribers:
+            wait_for_subscribers(pub, topic)
+        pub.publish(msg)
+
+    def drop_robot(self, robot):
+        with self._lock:
+            subs = self._subscribers.pop(robot, {})
+            pubs = [t for t, entry in self._publishers.items() if entry[0] == robot]
+            pub_objs = [self._publishers.pop(t)[1] for t in pubs]
+        for sub in subs.values():
+            sub.unregister()
+        for pub in pub_objs:
+            pub.unregister()
+
+    def subscribed_topics(self, robot):
+        with self._lock:
+            return set(self._subscribers.get(robot, {}))

@@ -1,0 +1,138 @@
+"""The whitelist: which robots and which of their topics FIROS maps (CONTRACTS §3, seed "Firos whitelist").
+
+Format: {"<robot regex>": {"publisher": [topic regexes], "subscriber": [topic regexes]}}, from the broker's
+point of view: publisher = broker → ROS, subscriber = ROS → broker. Robot names and topic names (relative to
+the robot's namespace, e.g. "move_base/goal") must match a regex entirely (re.fullmatch). Owns validation,
+matching and the in-memory edits of the HTTP API (write merges, remove deletes, restore reloads the file).
+"""
+
+import copy
+import os
+import re
+import threading
+
+from include.config import ConfigError, read_json
+
+KINDS = ("publisher", "subscriber")
+
+
+class WhitelistError(ValueError):
+    """A whitelist document is malformed (bad shape or a regex that does not compile)."""
+
+
+def validate(data):
+    """Return {robot_regex: {"publisher": [..], "subscriber": [..]}} or raise WhitelistError."""
+    if not isinstance(data, dict):
+        raise WhitelistError("the whitelist must be a JSON object {\"robot regex\": {\"publisher\": [...], "
+                             "\"subscriber\": [...]}}")
+    clean = {}
+    for robot, entry in data.items():
+        _compile(robot, f"robot regex {robot!r}")
+        if entry is None:
+            entry = {}
+        if not isinstance(entry, dict):
+            raise WhitelistError(f"\"{robot}\" must map to an object with \"publisher\" and \"subscriber\" lists")
+        unknown = set(entry) - set(KINDS)
+        if unknown:
+            raise WhitelistError(f"\"{robot}\" has unknown keys {sorted(unknown)}; only publisher and subscriber")
+        clean[robot] = {}
+        for kind in KINDS:
+            topics = entry.get(kind, [])
+            if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
+                raise WhitelistError(f"\"{robot}\".{kind} must be a list of topic regexes (strings)")
+            for topic in topics:
+                _compile(topic, f"topic regex {topic!r} of \"{robot}\".{kind}")
+            clean[robot][kind] = list(topics)
+    return clean
+
+
+def _compile(pattern, what):
+    try:
+        return re.compile(pattern)
+    except re.error as exc:
+        raise WhitelistError(f"{what} is not a valid regular expression: {exc}") from None
+
+
+class Whitelist:
+    """The whitelist in memory, safe to use from several threads."""
+
+    def __init__(self, path, data=None):
+        self.path = path
+        self._lock = threading.Lock()
+        self._data = {}
+        self._compiled = []
+        if data is None:
+            self.restore()
+        else:
+            self._set(validate(data))
+
+    @classmethod
+    def load(cls, config_dir):
+        """The whitelist of CONFIG_DIR/whitelist.json; ConfigError (one line) if it is wrong."""
+        path = os.path.join(config_dir, "whitelist.json")
+        return cls(path)
+
+    def restore(self):
+        """Reload whitelist.json (ConfigError if it is now wrong; the whitelist in memory is then unchanged)."""
+        data = read_json(self.path, "whitelist")
+        try:
+            clean = validate(data)
+        except WhitelistError as exc:
+            raise ConfigError(self.path, str(exc)) from None
+        with self._lock:
+            self._set(clean)
+
+    def _set(self, clean):
+        self._data = clean
+        self._compiled = [(re.compile(robot), {k: [re.compile(t) for t in entry.get(k, [])] for k in KINDS})
+                          for robot, entry in clean.items()]
+
+    def snapshot(self):
+        with self._lock:
+            return copy.deepcopy(self._data)
+
+    def write(self, data):
+        """Merge ``data`` (same format) into the whitelist in memory; WhitelistError changes nothing."""
+        clean = validate(data)
+        with self._lock:
+            merged = copy.deepcopy(self._data)
+            for robot, entry in clean.items():
+                target = merged.setdefault(robot, {k: [] for k in KINDS})
+                for kind in KINDS:
+                    for topic in entry.get(kind, []):
+                        if topic not in target.setdefault(kind, []):
+                            target[kind].append(topic)
+            self._set(merged)
+
+    def remove(self, data):
+        """Remove the listed topic regexes; a robot given with no lists (or left with none) is removed."""
+        clean = validate(data)
+        with self._lock:
+            merged = copy.deepcopy(self._data)
+            for robot, entry in clean.items():
+                if robot not in merged:
+                    continue
+                if not any(entry.get(k) for k in KINDS):
+                    del merged[robot]
+                    continue
+                for kind in KINDS:
+                    merged[robot][kind] = [t for t in merged[robot].get(kind, []) if t not in entry.get(kind, [])]
+                if not any(merged[robot].get(k) for k in KINDS):
+                    del merged[robot]
+            self._set(merged)
+
+    def robot_allowed(self, robot):
+        with self._lock:
+            return any(rx.fullmatch(robot) for rx, _ in self._compiled)
+
+    def topic_kinds(self, robot, topic):
+        """The set of kinds ("publisher", "subscriber") under which ``topic`` (relative name) is listed."""
+        kinds = set()
+        with self._lock:
+            for rx, topics in self._compiled:
+                if not rx.fullmatch(robot):
+                    continue
+                for kind in KINDS:
+                    if any(t.fullmatch(topic) for t in topics[kind]):
+                        kinds.add(kind)
+        return kinds
