@@ -76,6 +76,7 @@ class Rdapi(resource.Resource):
         super().__init__()
         self.platform = platform
         self.service = service
+        self._encoded = {}  # (path, query) -> (the answer object, its JSON bytes)
         self.routes = {
             "/": Route({"GET": None}),
             "/platform_instance/read": Route({"GET": lambda q, b: platform.read()}),
@@ -120,10 +121,20 @@ class Rdapi(resource.Resource):
         request.notifyFinish().addBoth(finished.append)
 
         def ok(reason):
-            if not finished:
-                if method == "POST":
-                    log.info("RDAPI %s %s: OK: %s", method, path, reason)
+            if finished:
+                return
+            if method == "POST":
+                log.info("RDAPI %s %s: OK: %s", method, path, reason)
                 self._write(request, 200, {"result": "OK", "reason": reason})
+                return
+            # reads: the commands hand out the same object while it is current; encode it once
+            key = (path, tuple(sorted(query.items())))
+            hit = self._encoded.get(key)
+            if hit is None or hit[0] is not reason:
+                if len(self._encoded) >= 1024:
+                    self._encoded.clear()
+                hit = self._encoded[key] = (reason, self._dumps({"result": "OK", "reason": reason}))
+            self._send(request, 200, hit[1])
 
         def error(failure):
             if finished:
@@ -191,13 +202,21 @@ class Rdapi(resource.Resource):
         return self._encode(request, status, payload)
 
     @staticmethod
-    def _encode(request, status, payload):
-        request.setResponseCode(status)
-        request.setHeader(b"Content-Type", b"application/json")
+    def _dumps(payload):
         return json.dumps(payload, sort_keys=True).encode("utf-8")
 
+    def _encode(self, request, status, payload):
+        request.setResponseCode(status)
+        request.setHeader(b"Content-Type", b"application/json")
+        return self._dumps(payload)
+
     def _write(self, request, status, payload):
-        data = self._encode(request, status, payload)
+        self._send(request, status, self._dumps(payload))
+
+    @staticmethod
+    def _send(request, status, data):
+        request.setResponseCode(status)
+        request.setHeader(b"Content-Type", b"application/json")
         request.setHeader(b"Content-Length", str(len(data)).encode())
         request.write(data)
         request.finish()
