@@ -237,7 +237,7 @@ def test_v1_error_answers(client):
     reply = client.post("/v1/updateContext", {"contextElements": [element("r1", [("a", "T", "x(y)")])],
                                               "updateAction": "APPEND"})
     assert (reply.status, reply.json) == (400, {"orionError": {
-        "code": "400", "reasonPhrase": "Bad Request", "details": "Invalid characters in attribute value"}})
+        "code": "400", "reasonPhrase": "Bad Request", "details": "Illegal value for JSON field"}})
     reply = client.post("/v1/updateContext", {"contextElements": [element("r1", [("a", "T", "1")])],
                                               "updateAction": "UPSERT"})
     assert (reply.status, reply.json["orionError"]["code"]) == (400, "400")
@@ -258,7 +258,9 @@ def test_body_size_limit_on_v1(client):
     big = json.dumps({"contextElements": [element("r1", [("a", "T", "x" * (1024 * 1024))])],
                       "updateAction": "APPEND"}).encode()
     reply = client.post("/v1/updateContext", raw=big)
-    assert (reply.status, reply.json["orionError"]["code"]) == (413, "413")
+    assert (reply.status, reply.json) == (413, {"errorCode": {
+        "code": "413", "reasonPhrase": "Request Entity Too Large",
+        "details": f"payload size: {len(big)}, max size supported: 1048576"}})
 
 
 # --- queryContext -----------------------------------------------------------------------------------------
@@ -447,3 +449,18 @@ def test_v1_tenants_are_kept_apart(broker):
     update(a, "APPEND", element("r1", [("a", "T", "1")]))
     assert query(b, [{"type": "ROBOT", "isPattern": "false", "id": "r1"}])["errorCode"]["code"] == "404"
     assert "contextResponses" in query(a, [{"type": "ROBOT", "isPattern": "false", "id": "r1"}])
+
+
+def test_convenience_operations_kept_after_orion_3_10(client):
+    update(client, "APPEND", element("r1", [("a", "T", "1"), ("b", "T", "2")]))
+    reply = client.get("/v1/contextEntities/r1/attributes/a")
+    assert reply.json == {"attributes": [{"name": "a", "type": "T", "value": "1"}],
+                          "statusCode": {"code": "200", "reasonPhrase": "OK"}}
+    reply = client.put("/v1/contextEntities/r1", {"attributes": [{"name": "a", "type": "T", "value": "5"}]})
+    assert reply.json == {"contextResponses": [{"attributes": [{"name": "a", "type": "T", "value": ""}],
+                                                "statusCode": {"code": "200", "reasonPhrase": "OK"}}]}
+    assert client.get("/v2/entities/r1/attrs/a").json["value"] == "5"
+    assert client.delete("/v1/contextEntities/r1").json == {"code": "200", "reasonPhrase": "OK"}
+    assert client.get("/v1/contextEntities/r1/attributes/a").json == {"statusCode": {
+        "code": "404", "reasonPhrase": "No context element found", "details": "Entity id: /r1/"}}
+    assert client.delete("/v1/contextEntities/r1").json["code"] == "404"

@@ -52,7 +52,8 @@ def entity_not_found():
 # --- validation -----------------------------------------------------------------------------------------
 
 def _has_forbidden_id_chars(text):
-    return any(ch in FORBIDDEN_ID_CHARS or ch.isspace() or ord(ch) < 32 or ord(ch) == 127 for ch in text)
+    """Plain printable ASCII only, without whitespace, ``&?/#`` or Orion's forbidden characters."""
+    return any(ch in FORBIDDEN_ID_CHARS or not 32 < ord(ch) < 127 for ch in text)
 
 
 def check_identifier(value, what):
@@ -79,9 +80,10 @@ def value_has_forbidden_chars(value):
     return False
 
 
-def check_attribute_value(attr_type, value):
+def check_attribute_value(attr_type, value, description="Invalid characters in attribute value"):
+    """Refuse a value holding a forbidden character (NGSI v1 words it "Illegal value for JSON field")."""
     if attr_type != UNRESTRICTED_TYPE and value_has_forbidden_chars(value):
-        raise bad_request("Invalid characters in attribute value")
+        raise bad_request(description)
 
 
 def default_type(value):

@@ -3,7 +3,8 @@
 ``updateContext`` (APPEND, APPEND_STRICT, UPDATE, DELETE, REPLACE), ``queryContext`` (``isPattern`` regular
 expressions, attribute filter, Orion's ``errorCode`` 404 "No context element found"), ``subscribeContext``
 (ONCHANGE conditions, ISO 8601 ``duration`` and ``throttling``, Orion's initial notification),
-``updateContextSubscription`` and ``unsubscribeContext``. The server maps ``/v1/<op>`` and ``/NGSI10/<op>`` here.
+``updateContextSubscription`` and ``unsubscribeContext``. The server maps ``/v1/<op>`` and ``/NGSI10/<op>`` here,
+plus the three ``/v1/contextEntities`` convenience calls Orion kept after 3.10.
 
 Per-element failures are answered, as Orion did, with HTTP 200 and an NGSI ``statusCode`` inside the body;
 malformed requests raise ``model.NgsiError`` and the server renders them as Orion's ``orionError``.
@@ -21,6 +22,7 @@ DEFAULT_LIMIT = 20
 MAX_LIMIT = 1000
 OK = {"code": "200", "reasonPhrase": "OK"}
 NOT_FOUND = "No context element found"
+ILLEGAL_VALUE = "Illegal value for JSON field"  # Orion's v1 answer to a forbidden character
 INVALID_PARAMETER = "request parameter is invalid/not allowed"
 
 
@@ -51,7 +53,7 @@ def _parse_attribute(raw):
     if attr_type != "":
         model.check_identifier(attr_type, "attribute type")
     value = raw.get("value", "")
-    model.check_attribute_value(attr_type, value)
+    model.check_attribute_value(attr_type, value, ILLEGAL_VALUE)
     metadata = {}
     for md in raw.get("metadatas", []) or []:
         if not isinstance(md, dict):
@@ -61,7 +63,7 @@ def _parse_attribute(raw):
         md_type = md.get("type", "")
         if md_type != "":
             model.check_identifier(md_type, "metadata type")
-        model.check_attribute_value(md_type, md.get("value", ""))
+        model.check_attribute_value(md_type, md.get("value", ""), ILLEGAL_VALUE)
         metadata[md_name] = {"type": md_type, "value": md.get("value", "")}
     return name, {"type": attr_type, "value": value, "metadata": metadata}
 
@@ -347,3 +349,35 @@ class NgsiV1:
                                    "details": f"subscriptionId: /{sub_id}/"},
                     "subscriptionId": sub_id})
         return req.json_response(200, {"statusCode": dict(OK), "subscriptionId": sub_id})
+
+    # --- the convenience operations Orion 3.10+ kept ----------------------------------------------------
+    def put_entity(self, req, entity_id):
+        """``PUT /v1/contextEntities/{id}`` with ``{"attributes": [...]}``: an UPDATE of that entity."""
+        body = req.json()
+        if not isinstance(body, dict):
+            raise model.NgsiError(400, "ParseError", "JSON Parse Error")
+        _, _, attrs = _parse_element({"id": entity_id, "attributes": body.get("attributes", [])})
+        with self.store.lock:
+            status = self._update_one(req, self.store.tenant(req.tenant), "UPDATE", entity_id, "", attrs)
+        return req.json_response(200, {"contextResponses": [{
+            "attributes": [model.v1_attribute(name, attr, with_value=False) for name, attr in attrs.items()],
+            "statusCode": status}]})
+
+    def delete_entity(self, req, entity_id):
+        """``DELETE /v1/contextEntities/{id}``: the entity and all its attributes."""
+        model.check_identifier(entity_id, "entity id")
+        with self.store.lock:
+            status = self._update_one(req, self.store.tenant(req.tenant), "DELETE", entity_id, "", {})
+        return req.json_response(200, status)
+
+    def get_entity_attribute(self, req, entity_id, attr_name):
+        """``GET /v1/contextEntities/{id}/attributes/{name}``."""
+        model.check_identifier(entity_id, "entity id")
+        with self.store.lock:
+            found = self.store.tenant(req.tenant).find(entity_id, None, req.query_paths)
+            attrs = [(name, dict(e.attrs[name])) for e in found[:1] for name in e.attrs if name == attr_name]
+        if not found or not attrs:
+            return req.json_response(200, {"statusCode": {"code": "404", "reasonPhrase": NOT_FOUND,
+                                                          "details": f"Entity id: /{entity_id}/"}})
+        return req.json_response(200, {"attributes": [model.v1_attribute(n, a) for n, a in attrs],
+                                       "statusCode": dict(OK)})

@@ -102,7 +102,7 @@ _SUB = r"(?P<sid>[^/]+)"
 READ_HANDLERS = {"version", "v2.root", "v2.list_entities", "v2.get_entity", "v2.get_attrs", "v2.get_attr",
                  "v2.get_attr_value", "v2.create_subscription", "v2.list_subscriptions", "v2.get_subscription",
                  "v2.patch_subscription", "v2.delete_subscription", "v1.query_context", "v1.subscribe_context",
-                 "v1.update_context_subscription", "v1.unsubscribe_context"}
+                 "v1.update_context_subscription", "v1.unsubscribe_context", "v1.get_entity_attribute"}
 V1_OPERATIONS = {"updatecontext": "update_context", "querycontext": "query_context",
                  "subscribecontext": "subscribe_context", "unsubscribecontext": "unsubscribe_context",
                  "updatecontextsubscription": "update_context_subscription"}
@@ -125,6 +125,8 @@ def _routes():
         (r"/v2/subscriptions", "v2", {"GET": "v2.list_subscriptions", "POST": "v2.create_subscription"}),
         (rf"/v2/subscriptions/{_SUB}", "v2", {"GET": "v2.get_subscription", "PATCH": "v2.patch_subscription",
                                               "DELETE": "v2.delete_subscription"}),
+        (rf"/v1/contextEntities/{_ID}", "v1", {"PUT": "v1.put_entity", "DELETE": "v1.delete_entity"}),
+        (rf"/v1/contextEntities/{_ID}/attributes/{_ATTR}", "v1", {"GET": "v1.get_entity_attribute"}),
     ]
     return [(re.compile("^" + pattern + "$"), api, methods) for pattern, api, methods in table]
 
@@ -152,7 +154,9 @@ def error_response(api, exc, handler_name=""):
     else:
         error_code = {"code": str(exc.status), "reasonPhrase": REASON_PHRASES.get(exc.status, "Bad Request"),
                       "details": exc.description}
-        if handler_name in ("v1.subscribe_context", "v1.update_context_subscription") \
+        if exc.status == 413:  # Orion's v1 answer to a too large payload
+            body = {"errorCode": error_code}
+        elif handler_name in ("v1.subscribe_context", "v1.update_context_subscription") \
                 and exc.error not in ("ParseError", "ContentLengthRequired"):
             body = {"subscribeError": {"errorCode": error_code}}
         else:
@@ -189,23 +193,11 @@ class _Handler(BaseHTTPRequestHandler):
         self._handle("OPTIONS")
 
     def _read_body(self, limit):
-        """The request body (Content-Length or chunked); NgsiError 413 beyond ``limit``."""
+        """The request body (by Content-Length); NgsiError 413 beyond ``limit``, 411 when chunked."""
         if "chunked" in (self.headers.get("Transfer-Encoding") or "").lower():
-            chunks, total = [], 0
-            while True:
-                size_line = self.rfile.readline(1024)
-                size = int(size_line.split(b";")[0].strip() or b"0", 16)
-                if size == 0:
-                    while self.rfile.readline(1024) not in (b"\r\n", b"\n", b""):
-                        pass
-                    return b"".join(chunks)
-                total += size
-                if total > limit:
-                    self.close_connection = True
-                    raise NgsiError(413, "RequestEntityTooLarge",
-                                    f"payload size: {total}, max size supported: {limit}")
-                chunks.append(self.rfile.read(size))
-                self.rfile.readline(1024)
+            # Orion (microhttpd) needs a Content-Length: a chunked request gets 411 (the body is not read)
+            self.close_connection = True
+            raise NgsiError(411, "ContentLengthRequired", "Zero/No Content-Length in PUT/POST/PATCH request")
         length_text = self.headers.get("Content-Length")
         if not length_text:
             return b""
