@@ -58,6 +58,9 @@ class Firos:
         self.read_client = read_client
         self.events = events               # object with created(robot) / removed(robot), or None
         self._lock = threading.RLock()
+        # one membership change (and one look at the ROS graph: rosgraph's XML-RPC proxy is not thread-safe)
+        # at a time, whichever thread asks: discovery loop, HTTP API, ROS control
+        self._membership = threading.RLock()
         self.robots = {}
         self.disabled = set()              # disconnected on request: discovery leaves them alone
         self._announced = set()
@@ -65,6 +68,10 @@ class Firos:
     # --- connecting -------------------------------------------------------------------------------------------
     def scan(self, only=None):
         """Look at the ROS graph and connect new whitelisted robots and topics; returns the robots touched."""
+        with self._membership:
+            return self._scan(only)
+
+    def _scan(self, only):
         found = discovery.robots_from_graph(self.graph.topics(), self.whitelist, only=only)
         touched = []
         for name, topics in sorted(found.items()):
@@ -80,12 +87,13 @@ class Firos:
 
     def connect(self, name=None):
         """Connect ``name`` (or every whitelisted robot of the graph) from the ROS graph; returns names."""
-        with self._lock:
-            if name is None:
-                self.disabled.clear()
-            else:
-                self.disabled.discard(name)
-        self.scan(only=name)
+        with self._membership:
+            with self._lock:
+                if name is None:
+                    self.disabled.clear()
+                else:
+                    self.disabled.discard(name)
+            self._scan(only=name)
         with self._lock:
             if name is None:
                 return sorted(self.robots)
@@ -94,9 +102,10 @@ class Firos:
     def connect_rcm(self, name, info):
         """Connect an RCM robot whose topics (the whole service space) come from rcm_driver's firos_info."""
         topics = discovery.robot_from_rcm(name, info, self.whitelist)
-        with self._lock:
-            self.disabled.discard(name)
-        self._connect(name, "", "rcm", topics, force=True)
+        with self._membership:
+            with self._lock:
+                self.disabled.discard(name)
+            self._connect(name, "", "rcm", topics, force=True)
 
     def _connect(self, name, namespace, source, topics, force=False):
         """Create or extend a robot; True when something changed."""
@@ -149,14 +158,15 @@ class Firos:
 
     def disconnect(self, name):
         """Remove the robot: its entity, its subscription, its topics. ApiError 404 if it is not connected."""
-        with self._lock:
-            robot = self.robots.pop(name, None)
-            self.disabled.add(name)
-        if robot is None:
-            raise ApiError(404, f"robot {name!r} is not connected")
-        self.topics.drop_robot(name)
-        self.subscriptions.remove(name)
-        self.sender.delete(name)
+        with self._membership:
+            with self._lock:
+                robot = self.robots.pop(name, None)
+                self.disabled.add(name)
+            if robot is None:
+                raise ApiError(404, f"robot {name!r} is not connected")
+            self.topics.drop_robot(name)
+            self.subscriptions.remove(name)
+            self.sender.delete(name)
         log.info("robot %s disconnected", name)
 
     def disconnect_all(self):
@@ -229,6 +239,10 @@ class Firos:
         info = robot.topics.get(relative)
         if info is not None and "publisher" in info.kinds:
             topic, msg_type, known = info.name, info.msg_type, True
+            named = ros_type(attr_type)
+            if named is not None and named != msg_type:
+                raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but topic "
+                                    f"{topic} carries {python_type(msg_type)}")
         elif "publisher" in self.whitelist.topic_kinds(robot.name, relative) or (
                 info is not None and robot.source == "rcm" and "publisher" in info.kinds):
             msg_type = ros_type(attr_type)
@@ -310,14 +324,15 @@ class Firos:
 
     def _after_whitelist_change(self):
         """Newly allowed robots and topics are picked up at once; robots already connected keep their topics."""
-        try:
-            self.scan()
-        except OSError as exc:
-            log.warning("cannot read the ROS graph after a whitelist change: %s", exc)
-        with self._lock:
-            robots = list(self.robots.values())
-        for robot in robots:
-            self._update_subscription(robot)
+        with self._membership:
+            try:
+                self._scan(None)
+            except OSError as exc:
+                log.warning("cannot read the ROS graph after a whitelist change: %s", exc)
+            with self._lock:
+                robots = list(self.robots.values())
+            for robot in robots:
+                self._update_subscription(robot)
 
 
 def dumps(obj):

@@ -262,8 +262,10 @@ class Sender:
                 self._delay = min(self._delay * 2, self.retry_max_delay)
             self._retry_at = time.monotonic() + self._delay
             if first:
-                for robot, state in self._robots.items():   # the broker may come back empty
-                    state["created"] = False
+                for robot, state in self._robots.items():   # the broker may come back empty: re-create
+                    state["created"] = False                 # (the create ops are also the retries)
+                    if ("create", robot) not in self._ops:
+                        self._ops.append(("create", robot))
         if first:
             log.error("context broker unavailable (%s); keeping the newest values and retrying", exc)
         else:

@@ -153,7 +153,9 @@ class FirosHandler(BaseHTTPRequestHandler):
         return 200, {"result": "OK", "reason": published}
 
     def h_get_stats(self, body):
-        return 200, self.firos.sender.snapshot_stats()
+        stats = self.firos.sender.snapshot_stats()
+        stats["subscriptions"] = self.firos.subscriptions.ids()
+        return 200, stats
 
 
 class FirosHTTPServer(ThreadingHTTPServer):

@@ -1,0 +1,139 @@
+"""Helpers for FIROS tests (owned by the FIROS tests): configuration folders, FIROS as a real child
+(`rosrun firos core.py -P PORT --config DIR`), `rostopic` children, and a small JSON HTTP client.
+"""
+
+import http.client
+import json
+import os
+
+import yaml
+
+from .polling import wait_until
+from .ports import free_port
+
+SEED_WHITELIST = {
+    "turtle\\w+": {"publisher": ["cmd_vel"], "subscriber": ["pose"]},
+    "robot\\w+": {"publisher": ["cmd_vel.*teleop", ".*move_base/goal", ".*move_base/cancel"],
+                  "subscriber": [".*move_base/result"]},
+    "end_end_test": {"publisher": ["p1"], "subscriber": ["s1"]},
+}
+
+
+def write_config(config_dir, broker_port, version="v2", whitelist=None, descriptions=None, **extra):
+    """Write config.json (environment "test"), whitelist.json and robotdescriptions.json into config_dir."""
+    os.makedirs(config_dir, exist_ok=True)
+    block = {"server": {"port": 10100},
+             "contextbroker": {"address": "127.0.0.1", "port": broker_port,
+                               "subscription": {"throttling": 0, "subscription_length": 60,
+                                                "subscription_refresh_delay": 30}},
+             "endpoint": {"address": "127.0.0.1"},
+             "log_level": "DEBUG", "ngsi_version": version, "discovery_interval": 0.2,
+             "retry_max_delay": 0.5}
+    block.update(extra)
+    with open(os.path.join(config_dir, "config.json"), "w") as f:
+        json.dump({"environment": "test", "test": block}, f, indent=2)
+    with open(os.path.join(config_dir, "whitelist.json"), "w") as f:
+        json.dump(SEED_WHITELIST if whitelist is None else whitelist, f, indent=2)
+    with open(os.path.join(config_dir, "robotdescriptions.json"), "w") as f:
+        json.dump(descriptions or {}, f, indent=2)
+    return config_dir
+
+
+def request(port, method, path, body=None, raw=None, timeout=10.0, headers=None):
+    """(status, parsed JSON or text) of one HTTP request to 127.0.0.1:port."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+    try:
+        data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
+        hdrs = {"Content-Type": "application/json"} if data is not None else {}
+        hdrs.update(headers or {})
+        conn.request(method, path, body=data, headers=hdrs)
+        resp = conn.getresponse()
+        text = resp.read().decode("utf-8", "replace")
+    finally:
+        conn.close()
+    try:
+        return resp.status, json.loads(text)
+    except ValueError:
+        return resp.status, text
+
+
+class Firos:
+    """A FIROS child process on its own HTTP port."""
+
+    def __init__(self, procs, master, config_dir, port=None, name="firos"):
+        self.procs = procs
+        self.master = master
+        self.config_dir = config_dir
+        self.port = port or free_port()
+        self.name = name
+        self.process = None
+
+    def start(self, timeout=20.0):
+        argv = ["/usr/bin/rosrun", "firos", "core.py", "-P", str(self.port), "--config", self.config_dir]
+        self.process = self.procs.start(argv, env=self.master.env({"ROS_LOG_DIR": self.config_dir + "/roslog"}),
+                                        name=self.name)
+
+        def up():
+            if self.process.poll() is not None:
+                raise AssertionError(f"FIROS exited with {self.process.returncode}: {self.output()}")
+            return self.get("/robots")[0] == 200
+        wait_until(up, timeout=timeout, message="FIROS to answer GET /robots")
+        wait_until(lambda: "/firos" in self.master.nodes(), timeout=timeout, message="/firos to register")
+        return self
+
+    def output(self):
+        return self.procs.output(self.process)
+
+    def alive(self):
+        return self.process.poll() is None
+
+    def get(self, path):
+        return request(self.port, "GET", path)
+
+    def post(self, path, body=None, raw=None):
+        return request(self.port, "POST", path, body=body, raw=raw)
+
+    def robots(self):
+        status, body = self.get("/robots")
+        assert status == 200, body
+        return {r["name"]: r for r in body}
+
+    def stats(self):
+        return self.get("/stats")[1]
+
+
+def rostopic_pub(procs, master, tmp, topic, msg_type, value, *extra, rate=None, name="rostopic_pub"):
+    """Start `rostopic pub` (once with -1, latched for 3 s, or at ``rate`` Hz) as a child."""
+    argv = ["/usr/bin/rostopic", "pub"] + (["-r", str(rate)] if rate else ["-1"]) + [topic, msg_type, value]
+    argv += list(extra)
+    return procs.start(argv, env=master.env({"ROS_LOG_DIR": str(tmp) + "/roslog"}), name=name)
+
+
+def rostopic_echo(procs, master, tmp, topic, count=1, name="rostopic_echo"):
+    argv = ["/usr/bin/rostopic", "echo", "-n", str(count), topic]
+    return procs.start(argv, env=master.env({"ROS_LOG_DIR": str(tmp) + "/roslog"}), name=name)
+
+
+def echoed_messages(procs, proc):
+    """The messages a `rostopic echo` child printed so far, parsed from its YAML output."""
+    text = procs.output(proc)
+    docs = []
+    for chunk in text.split("\n---"):
+        lines = [l for l in chunk.splitlines() if l.strip() and not l.startswith("WARNING")]
+        if not lines:
+            continue
+        try:
+            doc = yaml.safe_load("\n".join(lines))
+        except yaml.YAMLError:
+            continue
+        if isinstance(doc, dict):
+            docs.append(doc)
+    return docs
+
+
+def wait_subscribed(master, topic, node="/firos", timeout=10.0):
+    """Wait until ``node`` subscribes to ``topic`` in the ROS graph."""
+    def subscribed():
+        _, subs, _ = master.system_state()
+        return any(t == topic and node in nodes for t, nodes in subs)
+    wait_until(subscribed, timeout=timeout, message=f"{node} to subscribe to {topic}")
