@@ -304,19 +304,10 @@ class StartupError(Exception):
     """The agent cannot start (no address, data file unusable, cannot listen); ``str()`` is one line."""
 
 
-def _process_table(reactor, config):
-    try:
-        from . import rcmp_ms
-    except ImportError as exc:  # rcmp_ms is being written in parallel: run without service spaces meanwhile
-        log.warning("rcmp_ms is not available (%s): no process table, no service spaces", exc)
-        return None
-    return rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-
-
 def build_master(config, reactor):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
     from twisted.application import service
-    from . import rcmp_event
+    from . import rcmp_event, rcmp_ms
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import make_site, rdapi_service
     from .rcmp_platform_command import PlatformCommands
@@ -337,7 +328,7 @@ def build_master(config, reactor):
         data.set_master(config.name, vpn, config.inbound_open_ports)
     except (DataError, CommandError) as exc:
         raise StartupError(str(exc)) from None
-    table = _process_table(reactor, config)
+    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip)
     site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces))
     top = service.MultiService()
