@@ -153,7 +153,7 @@ class ResourceTests(DataTestCase):
         if isinstance(result, bytes):
             request.write(result)
             request.finish()
-        else:
+        elif not request.finished:
             yield request.notifyFinish()
         return request.responseCode or 200, b"".join(request.written), request
 
