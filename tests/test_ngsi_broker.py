@@ -592,3 +592,58 @@ def test_subscriptions_of_other_tenants_are_not_notified(broker, receiver):
 def _iso_in(seconds):
     from datetime import datetime, timedelta, timezone
     return (datetime.now(timezone.utc) + timedelta(seconds=seconds)).strftime("%Y-%m-%dT%H:%M:%S.%f")[:-3] + "Z"
+
+
+def test_connections_are_kept_alive_across_answers_of_every_kind(broker):
+    import http.client
+    service = new_tenant()
+    conn = http.client.HTTPConnection("127.0.0.1", broker.port, timeout=5)
+    try:
+        statuses = []
+        for method, path, body in [("POST", "/v2/entities", robot(a={"value": 1})),
+                                   ("GET", "/v2/entities/ghost", None),
+                                   ("POST", "/v2/entities", b'{"broken'),
+                                   ("PATCH", "/v2/entities/robot1/attrs", {"a": {"value": 2}}),
+                                   ("GET", "/v2/entities/robot1?options=keyValues", None)]:
+            data = body if isinstance(body, bytes) else (json.dumps(body).encode() if body else None)
+            headers = {"Fiware-Service": service}
+            if data:
+                headers["Content-Type"] = "application/json"
+            conn.request(method, path, body=data, headers=headers)
+            response = conn.getresponse()
+            payload = response.read()
+            statuses.append(response.status)
+        assert statuses == [201, 404, 400, 204, 200]
+        assert json.loads(payload)["a"] == 2
+    finally:
+        conn.close()
+
+
+def test_chunked_body_is_411_as_orion(client):
+    import http.client
+    conn = http.client.HTTPConnection("127.0.0.1", client.port, timeout=5)
+    try:
+        conn.request("POST", "/v2/entities", body=iter([b'{"id": "x", "type": "T"}']),
+                     headers={"Content-Type": "application/json", "Fiware-Service": client.service},
+                     encode_chunked=True)
+        response = conn.getresponse()
+        assert (response.status, json.loads(response.read())["error"]) == (411, "ContentLengthRequired")
+    finally:
+        conn.close()
+    assert client.get("/v2/entities").json == []
+
+
+def test_list_subscriptions_by_service_path(broker, receiver):
+    service = new_tenant()
+    robots = BrokerClient(broker.url, service=service, service_path="/robots")
+    other = BrokerClient(broker.url, service=service, service_path="/cameras")
+    sub_id = subscribe(robots, receiver.url)
+    subscribe(other, receiver.url)
+    assert [s["id"] for s in robots.get("/v2/subscriptions").json] == [sub_id]
+    assert len(BrokerClient(broker.url, service=service).get("/v2/subscriptions").json) == 2
+    # the subscription only sees its own path
+    create(other, robot(a={"value": 1}))
+    create(robots, robot(a={"value": 2}))
+    notes = receiver.wait_for(2)
+    by_id = {n.json["subscriptionId"]: n.json["data"][0]["a"]["value"] for n in notes}
+    assert by_id[sub_id] == 2

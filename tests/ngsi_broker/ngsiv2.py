@@ -402,6 +402,8 @@ class NgsiV2:
         now = time.time()
         with self.store.lock:
             subs = list(self.store.tenant(req.tenant).subscriptions.values())
+            if req.header("Fiware-ServicePath"):  # Orion lists those whose query uses exactly this path
+                subs = [sub for sub in subs if sub.query_paths == req.query_paths]
             body = [sub.render(now) for sub in subs[offset:offset + limit]]
         headers = {"Fiware-Total-Count": str(len(subs))} if "count" in options else {}
         return req.json_response(200, body, headers)

@@ -195,8 +195,9 @@ class _Handler(BaseHTTPRequestHandler):
     def _read_body(self, limit):
         """The request body (by Content-Length); NgsiError 413 beyond ``limit``, 411 when chunked."""
         if "chunked" in (self.headers.get("Transfer-Encoding") or "").lower():
-            # Orion (microhttpd) needs a Content-Length: a chunked request gets 411 (the body is not read)
+            # Orion (microhttpd) needs a Content-Length: a chunked request gets 411 (its body is dropped)
             self.close_connection = True
+            self._discard_chunked()
             raise NgsiError(411, "ContentLengthRequired", "Zero/No Content-Length in PUT/POST/PATCH request")
         length_text = self.headers.get("Content-Length")
         if not length_text:
@@ -220,6 +221,20 @@ class _Handler(BaseHTTPRequestHandler):
             if not chunk:
                 break
             remaining -= len(chunk)
+
+    def _discard_chunked(self):
+        total = 0
+        while total <= DRAIN_LIMIT:
+            line = self.rfile.readline(1024)
+            try:
+                size = int(line.split(b";")[0].strip() or b"0", 16)
+            except ValueError:
+                return
+            if size == 0:
+                return
+            self._discard(size)
+            self.rfile.readline(1024)
+            total += size
 
     def _handle(self, method):
         broker = self.server.broker
