@@ -97,36 +97,6 @@ class _OrderedWrites:
         return done
 
 
-def _service_space_manager(reactor, table, config, public_ip, on_state):
-    try:
-        from rcm_platform import rcmp_ms
-    except ImportError as exc:  # rcmp_ms is being written in parallel; hello still works without it
-        log.warning("rcmp_ms is not available (%s): robots connect but get no service space", exc)
-        return _NoServiceSpaces()
-    return rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, on_state=on_state)
-
-
-class _NoServiceSpaces:
-    """Used only while rcmp_ms does not exist yet: connections work, no service space is created."""
-
-    on_state = None
-
-    def create(self, pi_name, service_logic, robot):
-        return defer.succeed(None)
-
-    def teardown(self, pi_name):
-        return defer.succeed(None)
-
-    def teardown_all(self):
-        return defer.succeed(None)
-
-    def describe(self, ss_name):
-        return None
-
-    def item_exited(self, ss_name, report):
-        log.info("item of %s exited: %s", ss_name, report)
-
-
 def _platform_address(config):
     """The agent's platform address, or None while it does not exist yet."""
     from rcm_platform import rcmp_node  # rcmp_node assembles the agents, so import it late
@@ -188,7 +158,8 @@ class MasterAgent(service.Service):
         self.reactor = reactor
         self.public_ip = public_ip
         if spaces is None:
-            spaces = _service_space_manager(reactor, table, config, public_ip, self._on_state)
+            from rcm_platform import rcmp_ms
+            spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, on_state=self._on_state)
         else:  # tests give their own manager; it reports pairing changes through on_state
             spaces.on_state = self._on_state
         self.spaces = spaces
@@ -220,9 +191,9 @@ class MasterAgent(service.Service):
         if self.listening is not None:
             yield self.listening.stopListening()
             self.listening = None
-        for name in list(self.sessions):
-            yield self._locked(name, self._end_session, self.sessions.get(name), "the master is stopping",
-                               tell_robot=True)
+        yield defer.gatherResults([
+            self._locked(name, self._end_session, self.sessions.get(name), "the master is stopping",
+                         tell_robot=True) for name in list(self.sessions)], consumeErrors=True)
         yield self.spaces.teardown_all()
         yield self._write(lambda: None)
 
@@ -309,16 +280,13 @@ class MasterAgent(service.Service):
 
     @defer.inlineCallbacks
     def _create_space(self, session, pi):
+        """Build the robot's service space; not under the robot's lock, so that a teardown can cancel it."""
         logic = yield threads.deferToThread(self.data.service_logic, pi["service_logic"])
+        if session.ended:
+            return
         if logic is None:
             log.error("robot %s: its service logic %r is gone; not creating a service space", session.name,
                       pi["service_logic"])
-            return
-        yield self._locked(session.name, self._create_locked, session, logic)
-
-    @defer.inlineCallbacks
-    def _create_locked(self, session, logic):
-        if session.ended:
             return
         try:
             yield self.spaces.create(session.name, logic, session)
@@ -335,6 +303,7 @@ class MasterAgent(service.Service):
         if self.sessions.get(session.name) is session:
             del self.sessions[session.name]
         log.info("ending robot %s's session: %s", session.name, reason)
+        disconnected = self._write(self.data.set_disconnected, session.name)
         if tell_robot and not session.peer.closed:
             try:
                 yield session.peer.request("disconnect", {"reason": reason}, timeout=self._quick())
@@ -345,7 +314,7 @@ class MasterAgent(service.Service):
         except Exception as exc:
             log.error("tearing down robot %s's service space: %s", session.name, exc)
         session.peer.close(reason)
-        yield self._write(self.data.set_disconnected, session.name)
+        yield disconnected
 
     def _quick(self):
         return max(1.0, self.config.heartbeat_interval)

@@ -1,0 +1,226 @@
+"""Robot lifecycle with real agents, real SQLite, real ROS on loopback (issue 4, "Tests that must exist").
+
+A master runs on 127.0.0.1, robots on 127.0.0.2, .3, ...; every agent is ``python3 -m rcm_platform --home DIR``
+started as a child; provisioning goes through the RDAPI over HTTP. Each test ends by stopping its agents and
+checking that no process of the platform is left (no rosmaster, rosout, rosrun, roslaunch or talker).
+"""
+
+import os
+import signal
+import time
+
+import pytest
+
+from tests.support.lifecycle import Platform
+from tests.support.polling import wait_until
+
+TALKER = "talker.py"
+
+
+def node(name, side, topic, package="robotics_test", node_type=TALKER):
+    return {"sn_package": package, "sn_type": node_type, "sn_name": name, "sn_params": f"_topic:={topic}",
+            "sn_side": side}
+
+
+def launcher(name, side, prefix):
+    return {"sl_package": "robotics_test", "sl_file_launcher": "two_talkers.launch", "sl_name": name,
+            "sl_params": f"prefix:={prefix}", "sl_side": side}
+
+
+@pytest.fixture
+def platform(procs, tmp_path):
+    plat = Platform(procs, tmp_path)
+    try:
+        yield plat
+    finally:
+        # agents first (they stop what they started), then the safety net for anything left
+        try:
+            procs.stop_all()
+        finally:
+            leftovers = plat.leftovers()
+            plat.kill_leftovers()
+        assert not leftovers, f"processes left behind: {leftovers}"
+
+
+def published_topics(plat, ss_name):
+    return {name for name, _ in plat.ros_master(ss_name).getPublishedTopics("")}
+
+
+def finish(plat):
+    """Stop every agent (robots first) with SIGTERM, check each exited 0 and nothing of the platform is left."""
+    for robot in plat.robots.values():
+        if robot.process is not None and robot.process in plat.procs.children:
+            assert robot.stop() == 0
+    if plat.master.process in plat.procs.children:
+        assert plat.master.stop() == 0
+    plat.wait_no_leftovers()
+
+
+def test_s_and_r_nodes_pair_and_share_the_service_space(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    assert platform.state("robot1") == (False, False)
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+
+    wait_until(lambda: {"/brain_chatter", "/body_chatter"} <= published_topics(platform, "robot1"),
+               message="both topics in the service space's ROS master")
+    status, space = platform.space("robot1")
+    assert status == 200
+    where = {n["sn_name"]: n["i_name"] for n in space["r_nodes"]}
+    assert where == {"brain": "master", "body": "robot1"}
+    assert space["ros_master_uri"].startswith("http://127.0.0.1:")
+    port = int(space["ros_master_uri"].rstrip("/").rsplit(":", 1)[1])
+    assert port >= int(platform.master.keys["ros_port_base"])
+    # the R-side node registered from the robot's address, the S-side one from the master's
+    master_api = platform.ros_master("robot1")
+    assert master_api.lookupNode("/body").startswith("http://127.0.0.2:")
+    assert master_api.lookupNode("/brain").startswith("http://127.0.0.1:")
+    assert "connected to master" in robot.log_text()
+    finish(platform)
+
+
+def test_launcher_nodes_appear_in_associated_r_nodes(platform):
+    platform.master.start()
+    platform.provision_logic("with_launcher", sl_list=[launcher("pair_of_talkers", "R", "lt")])
+    platform.provision_robot("robot1", "with_launcher")
+    platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+    status, space = platform.space("robot1")
+    assert status == 200
+    (entry,) = space["r_launchers"]
+    assert entry["sl_name"] == "pair_of_talkers" and entry["i_name"] == "robot1"
+    assert sorted(entry["associated_r_nodes"]) == ["lt_talker_a", "lt_talker_b"]
+    assert {"lt_talker_a", "lt_talker_b"} <= {n["sn_name"] for n in space["r_nodes"]}
+    wait_until(lambda: {"/launch_chatter_a", "/launch_chatter_b"} <= published_topics(platform, "robot1"))
+    finish(platform)
+
+
+def test_items_that_cannot_start_leave_the_robot_connected_not_paired_with_the_error(platform):
+    platform.master.start()
+    platform.provision_logic("broken", sn_list=[
+        node("ghost", "S", "x", package="no_such_package_here", node_type="nothing.py"),
+        {"sn_package": "robotics_test", "sn_type": "crasher.py", "sn_name": "crash", "sn_params": "",
+         "sn_side": "R"},
+        node("fine", "R", "fine_chatter")])
+    platform.provision_robot("robot1", "broken")
+    platform.robot("robot1", "127.0.0.2").start()
+
+    def settled_space():
+        status, space = platform.space("robot1")
+        states = {n["sn_name"]: n.get("state") for n in space["r_nodes"]} if status == 200 else {}
+        return space if states.get("ghost") == "failed" and states.get("crash") == "failed" else None
+
+    space = wait_until(settled_space, timeout=30, message="both broken items to be reported failed")
+    assert platform.state("robot1") == (True, False)
+    errors = {n["sn_name"]: n.get("error") or "" for n in space["r_nodes"]}
+    assert "no_such_package_here" in errors["ghost"]
+    assert "imaginary_lidar" in errors["crash"]
+    assert {n["sn_name"]: n.get("state") for n in space["r_nodes"]}["fine"] == "running"
+    finish(platform)
+
+
+def test_unprovisioned_robot_is_refused_then_connects_once_provisioned(platform):
+    platform.master.start()
+    platform.provision_logic("one_node", sn_list=[node("brain", "S", "brain_chatter")])
+    robot = platform.robot("latecomer", "127.0.0.3").start()
+    wait_until(lambda: "not provisioned" in robot.log_text(), message="the refusal reason in the robot's log")
+    assert "latecomer" not in platform.instances()
+    pid = robot.process.pid
+    platform.provision_robot("latecomer", "one_node")
+    platform.wait_state("latecomer", True, True, timeout=15)
+    assert robot.process.pid == pid and robot.process.poll() is None     # no restart needed
+    finish(platform)
+
+
+def test_robot_with_an_empty_service_logic_pairs(platform):
+    platform.master.start()
+    platform.provision_logic("empty_logic")
+    platform.provision_robot("robot1", "empty_logic")
+    platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True, timeout=15)
+    status, space = platform.space("robot1")
+    assert status == 200 and space["r_nodes"] == [] and space["r_launchers"] == []
+    finish(platform)
+
+
+def test_sigkill_robot_disconnects_it_and_leaves_nothing(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+    robot_home = robot.home
+    assert any("body_chatter" in cmd for _, cmd in platform.leftovers())
+
+    killed = time.monotonic()
+    robot.kill()
+    platform.wait_state("robot1", False, False, timeout=3 * platform.heartbeat + 2.0)
+    assert time.monotonic() - killed <= 3 * platform.heartbeat + 2.0
+    wait_until(lambda: platform.space("robot1")[0] == 404, timeout=10, message="the service space to be gone")
+    # nothing of the robot's service space is left: not its R-side talker, not the master's side
+    wait_until(lambda: not [p for p in platform.leftovers() if p[0] != platform.master.process.pid],
+               timeout=10, message="every process of the service space to be gone")
+    assert os.path.isdir(robot_home)
+    finish(platform)
+
+
+def test_sigkill_master_stops_robot_items_and_a_new_master_repairs(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+
+    platform.master.kill()
+    wait_until(lambda: not [p for p in platform.leftovers() if p[0] != robot.process.pid],
+               timeout=10, message="the robot's R items and the old master's service space to be gone")
+    wait_until(lambda: "lost the master" in robot.log_text(), timeout=5)
+    platform.master.start()
+    platform.wait_state("robot1", True, True, timeout=30)
+    wait_until(lambda: {"/brain_chatter", "/body_chatter"} <= published_topics(platform, "robot1"))
+    finish(platform)
+
+
+def test_r_provisioning_a_paired_robot_tears_its_space_down(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+
+    status, answer = platform.remove_robot("robot1")
+    assert (status, answer["result"]) == (200, "OK")
+    assert "robot1" not in platform.instances()
+    assert platform.space("robot1")[0] == 404
+    agents = {platform.master.process.pid, robot.process.pid}
+    wait_until(lambda: not [p for p in platform.leftovers() if p[0] not in agents], timeout=10,
+               message="the service space's processes to be gone")
+    wait_until(lambda: robot.log_text().count("not provisioned") >= 1, timeout=10,
+               message="the robot to be refused after its removal")
+    finish(platform)
+
+
+def test_two_robots_with_one_logic_get_separate_spaces(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    for index, name in enumerate(("robot1", "robot2")):
+        platform.provision_robot(name, "two_sides")
+        platform.robot(name, f"127.0.0.{index + 2}").start(wait=False)
+    for name in ("robot1", "robot2"):
+        platform.robots[name].wait_ready()
+        platform.wait_state(name, True, True)
+    uris = {name: platform.space(name)[1]["ros_master_uri"] for name in ("robot1", "robot2")}
+    assert uris["robot1"] != uris["robot2"]
+    for name in ("robot1", "robot2"):
+        wait_until(lambda: {"/brain_chatter", "/body_chatter"} <= published_topics(platform, name),
+                   message=f"both topics in {name}'s ROS master")
+        assert platform.ros_master(name).lookupNode("/body").startswith(
+            f"http://{platform.robots[name].keys['vpn_address']}:")
+    finish(platform)
