@@ -239,7 +239,8 @@ def test_list_filters_and_pagination(client):
     assert ids("?idPattern=bot") == ["robot0", "robot1", "robot2", "robot3", "robot4"]  # unanchored, as Orion
     assert ids("?id=robot4,cam1") == ["robot4", "cam1"]
     assert ids("?limit=2&offset=4") == ["robot4", "cam1"]
-    assert ids("?attrs=fps") == ["cam1"]
+    projected = client.get("/v2/entities?attrs=fps&options=keyValues").json   # a projection, not a filter
+    assert [len(e) for e in projected] == [2, 2, 2, 2, 2, 3] and projected[-1]["fps"] == 30
     reply = client.get("/v2/entities?options=count&limit=1")
     assert reply.headers["Fiware-Total-Count"] == "6"
     assert client.get("/v2/entities?id=cam1&options=keyValues&attrs=fps").json == \
@@ -647,3 +648,35 @@ def test_list_subscriptions_by_service_path(broker, receiver):
     notes = receiver.wait_for(2)
     by_id = {n.json["subscriptionId"]: n.json["data"][0]["a"]["value"] for n in notes}
     assert by_id[sub_id] == 2
+
+
+def test_fault_injection_for_error_path_tests(broker):
+    client = BrokerClient(broker.url, service=new_tenant())
+    admin = BrokerClient(broker.url)
+    create(client, robot(a={"value": 1}))
+    try:
+        assert admin.post("/_standin/faults", {"status": 503, "count": 2, "path": "^/v2/op/update",
+                                               "method": "POST"}).status == 201
+        assert admin.get("/_standin/faults").json == [{"status": 503, "count": 2, "path": "^/v2/op/update",
+                                                       "method": "POST"}]
+        update = {"actionType": "append", "entities": [robot(a={"value": 2})]}
+        assert client.get("/v2/entities/robot1").status == 200          # other paths are not affected
+        for _ in range(2):
+            reply = client.post("/v2/op/update", update)
+            assert (reply.status, reply.json["error"]) == (503, "ServiceUnavailable")
+        assert client.get("/v2/entities/robot1?options=keyValues").json["a"] == 1   # the failed ones changed nothing
+        assert client.post("/v2/op/update", update).status == 204      # the faults are used up
+        assert admin.get("/_standin/faults").json == []
+        # status 0: the connection is closed without an answer
+        assert admin.post("/_standin/faults", {"status": 0, "path": "^/v1/"}).status == 201
+        import http.client
+        with pytest.raises((http.client.RemoteDisconnected, ConnectionResetError)):
+            client.post("/v1/queryContext", {"entities": [{"id": "robot1"}]})
+        assert client.post("/v1/queryContext", {"entities": [{"id": "robot1"}]}).status == 200
+        assert admin.post("/_standin/faults", {"status": 500, "count": 5}).status == 201
+        assert admin.delete("/_standin/faults").status == 204
+        assert client.get("/v2/entities/robot1").status == 200
+        for bad in ({"status": 200}, {"count": 0}, {"path": "("}, {"method": "BREW"}):
+            assert admin.post("/_standin/faults", bad).status == 400, bad
+    finally:
+        admin.delete("/_standin/faults")  # faults are broker-wide: never leave one behind

@@ -164,9 +164,8 @@ class NgsiV2:
             type_matcher = lambda etype: type_regex.search(etype) is not None  # noqa: E731
         attrs = _csv(req.param("attrs"))
         with self.store.lock:
+            # attrs is a projection in v2 (an entity without them is listed with id and type only)
             found = self.store.tenant(req.tenant).query(id_matchers, type_matcher, req.query_paths)
-            if attrs and "*" not in attrs:
-                found = [e for e in found if any(a in e.attrs for a in attrs)]
             page = found[offset:offset + limit]
             body = [model.v2_entity(e, model.select_attributes(e, attrs), fmt) for e in page]
         headers = {"Fiware-Total-Count": str(len(found))} if "count" in options else {}

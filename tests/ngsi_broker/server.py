@@ -6,6 +6,7 @@ parameters, ``Fiware-Service`` → tenant, ``Fiware-ServicePath`` → write path
 answered with a ``Response``. A ``model.NgsiError`` becomes Orion's NGSI v2 ``{"error", "description"}`` under
 ``/v2`` and Orion's ``orionError`` (or ``subscribeError`` for the v1 subscription operations) under ``/v1`` and
 ``/NGSI10``. Unknown URLs get Orion's "Service not found" 400, wrong methods a 405 with ``Allow``.
+``/_standin/faults`` (not an Orion URL) lets a test make the next requests fail, to exercise its error paths.
 """
 
 import json
@@ -14,6 +15,7 @@ import re
 import threading
 import time
 import uuid
+from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from urllib.parse import parse_qs, unquote, urlsplit
 
@@ -99,7 +101,7 @@ class Request:
 _ID = r"(?P<eid>[^/]+)"
 _ATTR = r"(?P<attr>[^/]+)"
 _SUB = r"(?P<sid>[^/]+)"
-READ_HANDLERS = {"version", "v2.root", "v2.list_entities", "v2.get_entity", "v2.get_attrs", "v2.get_attr",
+READ_HANDLERS = {"version", "faults.list", "faults.add", "faults.clear", "v2.root", "v2.list_entities", "v2.get_entity", "v2.get_attrs", "v2.get_attr",
                  "v2.get_attr_value", "v2.create_subscription", "v2.list_subscriptions", "v2.get_subscription",
                  "v2.patch_subscription", "v2.delete_subscription", "v1.query_context", "v1.subscribe_context",
                  "v1.update_context_subscription", "v1.unsubscribe_context", "v1.get_entity_attribute"}
@@ -112,6 +114,7 @@ def _routes():
     """(compiled path regex, api, {method: handler name}, content types allowed besides JSON)."""
     table = [
         (r"/version", "other", {"GET": "version"}),
+        (r"/_standin/faults", "other", {"GET": "faults.list", "POST": "faults.add", "DELETE": "faults.clear"}),
         (r"/v2/?", "v2", {"GET": "v2.root"}),
         (r"/v2/entities", "v2", {"GET": "v2.list_entities", "POST": "v2.create_entity"}),
         (rf"/v2/entities/{_ID}", "v2", {"GET": "v2.get_entity", "DELETE": "v2.delete_entity"}),
@@ -152,7 +155,8 @@ def error_response(api, exc, handler_name=""):
     if api == "v2":
         body = {"error": exc.error, "description": exc.description}
     else:
-        error_code = {"code": str(exc.status), "reasonPhrase": REASON_PHRASES.get(exc.status, "Bad Request"),
+        phrase = REASON_PHRASES.get(exc.status) or HTTPStatus(exc.status).phrase
+        error_code = {"code": str(exc.status), "reasonPhrase": phrase,
                       "details": exc.description}
         if exc.status == 413:  # Orion's v1 answer to a too large payload
             body = {"errorCode": error_code}
@@ -162,6 +166,61 @@ def error_response(api, exc, handler_name=""):
         else:
             body = {"orionError": error_code}
     return Response(exc.status, json.dumps(body).encode("utf-8"))
+
+
+class Faults:
+    """Test-only fault injection (``/_standin/faults``, not an Orion URL): the next ``count`` requests whose
+    path matches ``path`` (a regular expression, default any NGSI path) and, if given, ``method`` get HTTP
+    ``status`` with Orion's error body for that API, or, with status 0, a closed connection and no answer."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._faults = []
+
+    def add(self, req):
+        body = req.json()
+        if not isinstance(body, dict):
+            raise model.bad_request("a fault is a JSON object")
+        status, count = body.get("status", 500), body.get("count", 1)
+        if not isinstance(status, int) or not (status == 0 or 400 <= status <= 599):
+            raise model.bad_request("status must be 0 (close the connection) or an HTTP error status 400-599")
+        if not isinstance(count, int) or count < 1:
+            raise model.bad_request("count must be a positive whole number")
+        path = body.get("path", r"^/(v1|v2|NGSI10|ngsi10)/")
+        try:
+            regex = re.compile(path)
+        except (re.error, TypeError):
+            raise model.bad_request("path must be a regular expression") from None
+        method = body.get("method")
+        if method is not None and method not in ("GET", "POST", "PUT", "PATCH", "DELETE"):
+            raise model.bad_request("method must be GET, POST, PUT, PATCH or DELETE")
+        with self._lock:
+            self._faults.append({"status": status, "count": count, "path": path, "regex": regex,
+                                 "method": method})
+        return req.empty_response(201)
+
+    def list(self, req):
+        with self._lock:
+            body = [{k: v for k, v in f.items() if k != "regex"} for f in self._faults]
+        return req.json_response(200, body)
+
+    def clear(self, req):
+        with self._lock:
+            self._faults.clear()
+        return req.empty_response(204)
+
+    def take(self, method, path):
+        """The status of the fault this request meets (counting it down), or None."""
+        if path.startswith("/_standin/"):
+            return None
+        with self._lock:
+            for fault in self._faults:
+                if (fault["method"] in (None, method)) and fault["regex"].search(path):
+                    fault["count"] -= 1
+                    if fault["count"] == 0:
+                        self._faults.remove(fault)
+                    return fault["status"]
+        return None
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -258,6 +317,13 @@ class _Handler(BaseHTTPRequestHandler):
                 self._send(Response(405, b"", None, {"Allow": ", ".join(sorted(methods))}))
                 return
             handler_name = methods[method]
+            fault = broker.faults.take(method, path)
+            if fault == 0:
+                self.close_connection = True
+                return
+            if fault is not None:
+                raise NgsiError(fault, HTTPStatus(fault).phrase.replace(" ", "").replace("-", ""),
+                                "Database Error (fault injected by the stand-in broker)")
             request = Request(method, path, parse_qs(parts.query, keep_blank_values=True), self.headers, body, api)
             if body and request.content_type not in ("application/json", "text/plain"):
                 raise NgsiError(415, "UnsupportedMediaType",
@@ -306,6 +372,7 @@ class BrokerServer:
         self.notifications = Notifications(self.store, self.notifier)
         self.v1 = NgsiV1(self.store, self.notifications, initial_notification=v1_initial_notification)
         self.v2 = NgsiV2(self.store, self.notifications)
+        self.faults = Faults()
         self.max_body = max_body
         self.quiet = quiet
         self.httpd = _HTTPServer((host, port), _Handler)
