@@ -224,3 +224,57 @@ def test_two_robots_with_one_logic_get_separate_spaces(platform):
         assert platform.ros_master(name).lookupNode("/body").startswith(
             f"http://{platform.robots[name].keys['vpn_address']}:")
     finish(platform)
+
+
+def test_four_firos_robots_get_the_four_inbound_ports_and_a_fifth_waits(procs, tmp_path):
+    from tests.ngsi_broker.testing import start_broker
+    from tests.support.firos import write_config
+    from tests.test_firos_e2e import v2_entity
+
+    plat = Platform(procs, tmp_path / "platform", inbound_ports=4)
+    try:
+        broker = start_broker(procs)
+        config_dir = write_config(str(tmp_path / "firos-config"), broker.port)
+        plat.master.start()
+        plat.provision_logic("fiware_robot", sn_list=[
+            {"sn_package": "rcm", "sn_type": "rcm_driver.py", "sn_name": "rcm_driver", "sn_params": "",
+             "sn_side": "S"},
+            {"sn_package": "firos", "sn_type": "core.py", "sn_name": "firos", "sn_params": f"--config {config_dir}",
+             "sn_side": "S"},
+            node("body", "R", "body_chatter")])
+        names = [f"robot{n}" for n in range(1, 6)]
+        for index, name in enumerate(names[:4]):
+            plat.provision_robot(name, "fiware_robot")
+            plat.robot(name, f"127.0.0.{index + 2}").start(wait=False)
+        for name in names[:4]:
+            plat.robots[name].wait_ready()
+            plat.wait_state(name, True, True, timeout=60)
+        ports = {name: plat.space(name)[1]["inbound_port"] for name in names[:4]}
+        assert sorted(ports.values()) == sorted(plat.inbound_ports)
+        for name in names[:4]:
+            wait_until(lambda: v2_entity(broker, name) is not None, timeout=30,
+                       message=f"the broker entity of {name}")
+
+        plat.provision_robot(names[4], "fiware_robot")
+        plat.robot(names[4], "127.0.0.6").start()
+
+        def fifth_refused_a_port():
+            status, space = plat.space(names[4])
+            return status == 200 and "no inbound open port" in (space.get("reason") or "")
+
+        wait_until(fifth_refused_a_port, timeout=30, message="the fifth robot's reason")
+        assert plat.state(names[4]) == (True, False)
+        assert plat.space(names[4])[1]["inbound_port"] is None
+        # a FIROS robot leaving frees its port for the fifth one
+        assert plat.robots["robot1"].stop() == 0
+        plat.wait_state("robot1", False, False)
+        wait_until(lambda: v2_entity(broker, "robot1") is None, timeout=15,
+                   message="FIROS to remove robot1's entity")
+        finish(plat)
+    finally:
+        try:
+            procs.stop_all()
+        finally:
+            leftovers = plat.leftovers()
+            plat.kill_leftovers()
+        assert not leftovers, f"processes left behind: {leftovers}"
