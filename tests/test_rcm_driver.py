@@ -14,7 +14,7 @@ import socket
 import pytest
 
 from tests.support.polling import wait_until
-from tests.support.ports import free_port
+from tests.support.ports import free_port, port_accepts
 from tests.support.processes import ros_env
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -105,6 +105,60 @@ def test_graph_topics_lists_publishers_and_subscribers_minus_the_platform():
         {"name": "/r1/odom", "msg": "nav_msgs/Odometry", "type": "subscriber"},
     ]
     assert json.loads(driver.firos_info_json("r1", [])) == {"r1": {"topics": []}}
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The agent server on its own, in this process (no ROS needed: its rospy log calls go to Python logging)
+
+@pytest.fixture
+def agent_server():
+    commands, servers = [], []
+
+    def start(**kwargs):
+        sock = driver.AgentServer.bind(0)
+        server = driver.AgentServer(sock, lambda command, name: commands.append((command, name)), **kwargs)
+        server.port = sock.getsockname()[1]
+        server.start()
+        servers.append(server)
+        return server
+
+    start.commands = commands
+    yield start
+    for server in servers:
+        server.stop()
+        assert not server.thread.is_alive()
+
+
+def test_an_agent_that_stops_reading_is_dropped_and_others_keep_working(agent_server, agents, caplog):
+    server = agent_server(max_pending_out=64 * 1024)
+    slow, other = agents(server.port), agents(server.port)
+    slow_robot = "slow_" + "x" * 4000        # long (still valid) name: its 4 kB lines fill the kernel's buffers fast
+    slow.announce("r_connection", slow_robot)
+    other.announce("r_connection", "other_robot")
+    wait_until(lambda: len(agent_server.commands) == 2, message="both announcements")
+
+    def flood():
+        for _ in range(50):
+            server.send_entity_event(slow_robot, "e_created")
+        return len(server.clients) == 1
+    wait_until(flood, timeout=30, message="the agent that never reads to be dropped")
+    assert "does not read its answers" in caplog.text
+
+    server.send_entity_event("other_robot", "e_removed")
+    line = other.read_line()
+    while line["r_name"] == slow_robot:      # sent to everyone once its announcer was gone
+        line = other.read_line()
+    assert line == {"rcm_d_cmd": "e_removed", "r_name": "other_robot"}
+
+
+def test_stop_closes_every_connection_and_the_port(agent_server, agents):
+    server = agent_server()
+    first, second = agents(server.port), agents(server.port)
+    wait_until(lambda: len(server.clients) == 2, message="two connections")
+    server.stop()
+    assert not server.thread.is_alive()
+    assert first.at_eof() and second.at_eof()
+    assert not port_accepts(server.port)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -215,14 +269,16 @@ def test_agent_commands_become_robot_events_and_entity_events_come_back(procs, e
     wait_until(lambda: robot_events(procs, listener) == [{"instance_name": "robot1", "instance_status": CONNECTED}],
                message="Robot_Event robot1 CONNECTED")
 
-    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event", {"entity_name": "robot1", "entity_status": CREATED})
+    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event",
+            {"entity_name": "robot1", "entity_status": CREATED})
     assert agent.read_line() == {"rcm_d_cmd": "e_created", "r_name": "robot1"}
 
     agent.announce("r_disconnection", "robot1")
     wait_until(lambda: robot_events(procs, listener)[1:] == [{"instance_name": "robot1",
                                                               "instance_status": DISCONNECTED}],
                message="Robot_Event robot1 DISCONNECTED")
-    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event", {"entity_name": "robot1", "entity_status": REMOVED})
+    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event",
+            {"entity_name": "robot1", "entity_status": REMOVED})
     assert agent.read_line() == {"rcm_d_cmd": "e_removed", "r_name": "robot1"}
     output = procs.output(node)
     assert "r_connection robot1" in output and "e_created robot1 sent to" in output
@@ -296,10 +352,12 @@ def test_two_agents_each_get_their_robots_events(procs, env, agents):
     wait_until(lambda: "r_connection robotA" in procs.output(node) and "r_connection robotB" in procs.output(node),
                message="both announcements")
 
-    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event", {"entity_name": "robotB", "entity_status": CREATED})
+    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event",
+            {"entity_name": "robotB", "entity_status": CREATED})
     assert second.read_line() == {"rcm_d_cmd": "e_created", "r_name": "robotB"}
     # nobody announced robotX: everyone hears it, and it is the first line the first agent gets
-    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event", {"entity_name": "robotX", "entity_status": REMOVED})
+    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event",
+            {"entity_name": "robotX", "entity_status": REMOVED})
     assert first.read_line() == {"rcm_d_cmd": "e_removed", "r_name": "robotX"}
     assert second.read_line() == {"rcm_d_cmd": "e_removed", "r_name": "robotX"}
 
@@ -307,7 +365,8 @@ def test_two_agents_each_get_their_robots_events(procs, env, agents):
     first.close()
     wait_until(lambda: "disconnected (closed by the agent); 1 connection(s) left" in procs.output(node),
                message="the driver to notice the closed connection")
-    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event", {"entity_name": "robotA", "entity_status": CREATED})
+    publish(procs, env, "/firos/cb_event", "robotics_msgs/CB_Event",
+            {"entity_name": "robotA", "entity_status": CREATED})
     assert second.read_line() == {"rcm_d_cmd": "e_created", "r_name": "robotA"}
     assert node.poll() is None
 

@@ -17,9 +17,11 @@ line, never a crash; a port already in use is one error line and exit status 1. 
 """
 
 import json
+import os
 import queue
 import re
 import selectors
+import signal
 import socket
 import sys
 import threading
@@ -36,6 +38,7 @@ DEFAULT_PORT = 9998
 MAX_LINE_BYTES = 4096            # an agent line longer than this is discarded (a robot name is short)
 MAX_PENDING_OUT_BYTES = 1 << 20  # an agent that stops reading is dropped rather than buffered forever
 SUBSCRIBER_WAIT = 2.0            # seconds to wait for known subscribers to connect before publishing
+STOP_POLL = 0.05                 # seconds between two looks of the main thread at a stop request
 
 ROBOT_EVENT_TOPIC = "/rcm/robot_event"
 CB_EVENT_TOPIC = "/firos/cb_event"
@@ -172,14 +175,16 @@ class AgentServer:
     ``send_entity_event`` may be called from any thread; the server thread does the sending.
     """
 
-    def __init__(self, listen_sock, on_command):
+    def __init__(self, listen_sock, on_command, max_pending_out=MAX_PENDING_OUT_BYTES):
         self.listen_sock = listen_sock
         self.on_command = on_command
+        self.max_pending_out = max_pending_out
         self.selector = selectors.DefaultSelector()
         self.clients = {}                          # socket -> AgentConnection
         self.pending = []                          # (robot_name, answer) waiting for the server thread
         self.lock = threading.Lock()
         self.stopping = False
+        self.failed = False                        # the server thread ended on an unexpected error
         self.wake_r, self.wake_w = socket.socketpair()
         self.wake_r.setblocking(False)
         self.wake_w.setblocking(False)
@@ -238,8 +243,9 @@ class AgentServer:
                         if events & selectors.EVENT_WRITE and client.sock in self.clients:
                             self._flush(client)
                 self._deliver_pending()
-        except Exception as exc:  # a bug here must be visible, and must not leave sockets open
-            rospy.logerr("rcm_driver: agent server stopped by an unexpected error: %r", exc)
+        except Exception as exc:  # a bug here must be visible, must not leave sockets open, and stops the node
+            rospy.logerr("rcm_driver: agent server stopped by an unexpected error: %r; stopping the node", exc)
+            self.failed = True
         finally:
             self._close_all()
 
@@ -270,7 +276,7 @@ class AgentServer:
         except (BlockingIOError, InterruptedError):
             return
         except OSError as exc:
-            self._close(client, f"read failed: {exc}")
+            self._close(client, f"read failed: {exc}", warn=True)
             return
         if not data:
             self._close(client, "closed by the agent")
@@ -337,15 +343,15 @@ class AgentServer:
         except (BlockingIOError, InterruptedError):
             pass
         except OSError as exc:
-            self._close(client, f"write failed: {exc}")
+            self._close(client, f"write failed: {exc}", warn=True)
             return
-        if len(client.outbuf) > MAX_PENDING_OUT_BYTES:
-            self._close(client, f"it does not read its answers ({len(client.outbuf)} bytes waiting)")
+        if len(client.outbuf) > self.max_pending_out:
+            self._close(client, f"it does not read its answers ({len(client.outbuf)} bytes waiting)", warn=True)
             return
         events = selectors.EVENT_READ | (selectors.EVENT_WRITE if client.outbuf else 0)
         self.selector.modify(client.sock, events, client)
 
-    def _close(self, client, why):
+    def _close(self, client, why, warn=False):
         if self.clients.pop(client.sock, None) is None:
             return
         try:
@@ -353,8 +359,8 @@ class AgentServer:
         except (KeyError, ValueError):
             pass
         client.sock.close()
-        rospy.loginfo("rcm_driver: agent %s disconnected (%s); %d connection(s) left",
-                      client.peer, why, len(self.clients))
+        log = rospy.logwarn if warn else rospy.loginfo
+        log("rcm_driver: agent %s disconnected (%s); %d connection(s) left", client.peer, why, len(self.clients))
 
     def _close_all(self):
         for client in list(self.clients.values()):
@@ -388,6 +394,7 @@ class RobotEventPublisher:
     def __init__(self):
         self.publisher = rospy.Publisher(ROBOT_EVENT_TOPIC, Robot_Event, queue_size=100, latch=True)
         self.events = queue.Queue()
+        self.stopping = threading.Event()
         self.thread = threading.Thread(target=self._run, name="robot-event-publisher", daemon=True)
 
     def start(self):
@@ -397,6 +404,7 @@ class RobotEventPublisher:
         self.events.put((robot_name, status))
 
     def stop(self, timeout=5.0):
+        self.stopping.set()
         self.events.put(None)
         if self.thread.is_alive():
             self.thread.join(timeout)
@@ -404,7 +412,7 @@ class RobotEventPublisher:
     def _run(self):
         while True:
             event = self.events.get()
-            if event is None or rospy.is_shutdown():
+            if event is None or self.stopping.is_set():
                 return
             robot_name, status = event
             try:
@@ -426,9 +434,9 @@ class RobotEventPublisher:
             return
         expected = len(next((nodes for name, nodes in subs if name == ROBOT_EVENT_TOPIC), []))
         deadline = time.monotonic() + SUBSCRIBER_WAIT
-        while (self.publisher.get_num_connections() < expected and time.monotonic() < deadline
-               and not rospy.is_shutdown()):
-            time.sleep(0.02)
+        while self.publisher.get_num_connections() < expected and time.monotonic() < deadline:
+            if self.stopping.wait(0.02):
+                return
         if self.publisher.get_num_connections() < expected:
             rospy.logwarn("rcm_driver: only %d of %d subscriber(s) of %s connected after %.0f s; publishing anyway",
                           self.publisher.get_num_connections(), expected, ROBOT_EVENT_TOPIC, SUBSCRIBER_WAIT)
@@ -450,8 +458,11 @@ class RcmDriver:
     def stop(self):
         self.server.stop()
         self.robot_events.stop()
-        self.subscriber.unregister()
-        self.service.shutdown("rcm_driver is stopping")
+        try:
+            self.subscriber.unregister()
+            self.service.shutdown("rcm_driver is stopping")
+        except Exception as exc:  # rospy may already have let go of them while shutting down
+            rospy.logdebug("rcm_driver: releasing ROS handles: %s", exc)
 
     def _on_agent_command(self, command, robot_name):
         self.robot_events.submit(robot_name, AGENT_COMMANDS[command])
@@ -481,6 +492,31 @@ class RcmDriver:
         return FIROS_InfoResponse(json_format=firos_info_json(request.instance_name, topics))
 
 
+class StopSignals:
+    """SIGINT/SIGTERM handling that is safe in a threaded rospy process.
+
+    rospy's own handlers run its whole shutdown inside the signal handler, on the main thread, wherever that
+    thread was interrupted; interrupted inside rospy's logging (which holds non-reentrant locks), the node
+    deadlocks and never exits. Here the handler only records the signal and the main loop shuts down in
+    ordinary code. Before the node is up (rospy.init_node waits for the master for as long as it takes) the
+    handler ends the process at once instead: nothing of ours is running yet.
+    """
+
+    def __init__(self):
+        self.received = None
+        self.node_up = False
+
+    def install(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+
+    def _handle(self, signum, _frame):
+        if not self.node_up:
+            os.write(2, f"rcm_driver: stopped by signal {signum} before the node started\n".encode())
+            os._exit(0)
+        self.received = signum
+
+
 def main(argv=None):
     argv = sys.argv if argv is None else argv
     try:
@@ -496,22 +532,32 @@ def main(argv=None):
         return 1
     # rospy's console handler does not flush; when our output goes to a file, flush each line
     sys.stdout.reconfigure(line_buffering=True)
+    stop = StopSignals()
+    stop.install()
     try:
-        rospy.init_node(NODE_NAME, argv=rospy_argv(argv))
+        rospy.init_node(NODE_NAME, argv=rospy_argv(argv), disable_signals=True)
     except rospy.ROSException as exc:
         listen_sock.close()
         print(f"rcm_driver: cannot start the ROS node: {exc}", file=sys.stderr)
         return 1
     driver = RcmDriver(listen_sock)
     driver.start()
+    stop.node_up = True
     rospy.loginfo("rcm_driver: listening for RCM agents on %s:%d; publishing %s, subscribed to %s, serving %s",
                   LISTEN_HOST, port, ROBOT_EVENT_TOPIC, CB_EVENT_TOPIC, FIROS_INFO_SERVICE)
-    try:
-        rospy.spin()
-    finally:
-        driver.stop()
+    while stop.received is None and not rospy.is_shutdown() and not driver.server.failed:
+        time.sleep(STOP_POLL)
+    if stop.received is not None:
+        reason = f"signal {stop.received}"
+    elif driver.server.failed:
+        reason = "agent server failed"
+    else:
+        reason = "ROS shut the node down"
+    rospy.loginfo("rcm_driver: stopping (%s)", reason)
+    driver.stop()
+    rospy.signal_shutdown(reason)
     rospy.loginfo("rcm_driver: stopped")
-    return 0
+    return 1 if driver.server.failed else 0
 
 
 if __name__ == "__main__":
