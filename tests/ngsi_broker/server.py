@@ -417,7 +417,9 @@ class BrokerServer:
         return self
 
     def shutdown(self):
-        self.httpd.shutdown()
+        """Stop serving (when ``start`` was called), close the socket and stop the notifier."""
+        if self._thread is not None:
+            self.httpd.shutdown()
         self.httpd.server_close()
         self.notifier.close(timeout=0.5)
         if self._thread is not None:
