@@ -308,3 +308,42 @@ def test_malformed_bodies_get_400_and_firos_keeps_forwarding(procs, ros_master, 
     assert status == 204
     wait_until(lambda: {"data": "go"} in received(procs, peer, "/end_end_test/p1"), timeout=15,
                message="the command after the bad requests")
+
+
+def test_ros_connect_disconnect_service_headers_and_cleanup_at_shutdown(procs, ros_master, tmp_path):
+    """NGSI v1 with a Fiware-Service: firos/disconnect and firos/connect from ROS, and at shutdown FIROS removes
+    its subscriptions and entities."""
+    broker = start_broker(procs)
+    config = write_config(str(tmp_path / "config"), broker.port, version="v1", fiware_service="robots",
+                          fiware_servicepath="/lab")
+    tenant = {"Fiware-Service": "robots", "Fiware-ServicePath": "/lab"}
+
+    def entity(eid, headers=tenant):
+        status, body = request(broker.port, "GET", f"/v2/entities/{eid}?type=ROBOT", headers=headers)
+        return body if status == 200 else None
+
+    def subscriptions():
+        return request(broker.port, "GET", "/v2/subscriptions", headers=tenant)[1]
+
+    talker(procs, ros_master, tmp_path, "--rate", "5", "--pub", "/end_end_test/s1", "std_msgs/String",
+           json.dumps({"data": "x"}))
+    firos = Firos(procs, ros_master, config).start()
+    wait_until(lambda: (entity("end_end_test") or {}).get("s1"), timeout=15, message="s1 in tenant robots")
+    assert entity("end_end_test", headers={}) is None             # not in the default tenant
+    wait_subscription(firos, "end_end_test")
+    assert len(subscriptions()) == 1
+
+    rostopic_pub(procs, ros_master, tmp_path, "/firos/disconnect", "std_msgs/String", "data: end_end_test",
+                 name="disconnect")
+    wait_until(lambda: entity("end_end_test") is None and subscriptions() == [], timeout=15,
+               message="entity and subscription removed after firos/disconnect")
+    assert "end_end_test" not in firos.robots()                   # and discovery leaves it alone
+
+    rostopic_pub(procs, ros_master, tmp_path, "/firos/connect", "std_msgs/String", "data: end_end_test",
+                 name="connect")
+    wait_until(lambda: (entity("end_end_test") or {}).get("s1") and len(subscriptions()) == 1, timeout=15,
+               message="entity and subscription back after firos/connect")
+
+    procs.stop(firos.process)
+    assert firos.process.returncode == 0, firos.output()
+    assert subscriptions() == [] and entity("end_end_test") is None

@@ -329,3 +329,21 @@ def test_subscriptions_are_refreshed_before_expiry_and_removed(tmp_path, broker,
         wait_until(lambda: sub_id not in listed(), message="the subscription removed")
     finally:
         subs.stop()
+
+
+def test_notification_address_from_interface_or_endpoint(tmp_path):
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("firos_core", os.path.join(ROOT, "firos", "scripts", "core.py"))
+    core = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(core)
+    settings = _settings(tmp_path, 1026)
+    settings.endpoint_address, settings.endpoint_port = None, None
+    settings.interface = "lo"
+    assert core.notification_address(settings) == ("127.0.0.1", settings.server_port)
+    settings.interface = "public"                       # the address this machine uses towards the broker
+    assert core.notification_address(settings) == ("127.0.0.1", settings.server_port)
+    settings.interface = "nosuch0"
+    with pytest.raises(cfg.ConfigError, match="interface 'nosuch0' does not exist"):
+        core.notification_address(settings)
+    settings.endpoint_address, settings.endpoint_port = "10.1.2.3", 10101
+    assert core.notification_address(settings) == ("10.1.2.3", 10101)
