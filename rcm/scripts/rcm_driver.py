@@ -496,8 +496,10 @@ class StopSignals:
     """SIGINT/SIGTERM handling that is safe in a threaded rospy process.
 
     rospy's own handlers run its whole shutdown inside the signal handler, on the main thread, wherever that
-    thread was interrupted; interrupted inside rospy's logging (which holds non-reentrant locks), the node
-    deadlocks and never exits. Here the handler only records the signal and the main loop shuts down in
+    thread was interrupted. We saw it hang for good: the main thread was inside rospy.loginfo, whose /rosout
+    handler was in an XML-RPC call to the master holding rospy's non-reentrant ServerProxy lock
+    (rospy/core.py _LockedServerProxy); the handler's shutdown made its own XML-RPC call (unregistering) and
+    waited on that lock forever. Here the handler only records the signal and the main loop shuts down in
     ordinary code. Before the node is up (rospy.init_node waits for the master for as long as it takes) the
     handler ends the process at once instead: nothing of ours is running yet.
     """
