@@ -381,3 +381,61 @@ def test_robot_installed_next_to_the_master_pairs_with_it(tmp_path, slot):
     run([master_pkg / "uninstall.sh"], env=user_env(user), cwd=master_pkg)
     assert_nothing_left(user / "rcmp_ws")
     assert not agent_processes()
+
+
+def test_rcmpd_reports_start_failures_stale_pid_files_and_double_starts(tmp_path, slot):
+    """The init script's answers, on an (ext) installation in temporary places under its own name."""
+    name = f"rcmpdtest{os.getpid()}"
+    places = {"home": tmp_path / "opt", "bin": tmp_path / "bin", "lib": tmp_path / "lib", "ws": tmp_path / "ws"}
+    slot.claim(name)
+    slot.add_cleanup((name, [str(p) for p in places.values()]))
+    pkg = build_zip(tmp_path / "m", "master")
+    user = tmp_path / "user"
+    user.mkdir()
+    ext_port, ic_port = free_ports(2)
+    run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--ext-address", "127.0.0.1",
+         "--ext-port", ext_port, "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--home", places["home"],
+         "--bin-dir", places["bin"], "--lib-dir", places["lib"], "--workspace", places["ws"],
+         "--service-name", name], env=user_env(user), cwd=pkg)
+    program = str(places["bin"] / "rcmp_n")
+    with open(f"/etc/init.d/{name}") as f:
+        assert f"# Provides:          {name}\n" in f.read()
+    status = service(name, "status")
+    assert (status.returncode, status.stdout.strip()) == (3, f"{program} is not running")
+
+    # a configuration the agent refuses: start fails and shows the agent's one line
+    config = places["home"] / ".init.cfg"
+    good = config.read_text()
+    config.write_text(good + "ext_port=not-a-port\n")
+    bad = service(name, "start")
+    assert bad.returncode == 1
+    assert "stopped right after starting" in bad.stderr and ".init.cfg" in bad.stderr
+    assert service(name, "status").returncode == 3 and not agent_processes((program,))
+
+    config.write_text(good)
+    assert service(name, "start").returncode == 0
+    master_up(ext_port)
+    pids = list(agent_processes((program,)))
+    again = service(name, "start")
+    assert (again.returncode, again.stdout.strip()) == (0, f"{program} is already running")
+    assert list(agent_processes((program,))) == pids
+
+    # the agent dies behind the script's back: status says so, start recovers
+    os.kill(pids[0], signal.SIGKILL)
+    wait_until(lambda: not agent_processes((program,)), timeout=10, message="the killed agent to go")
+    stale = service(name, "status")
+    assert (stale.returncode, stale.stdout.strip()) == (1, f"{program} is not running (stale pid file /run/{name}.pid)")
+    assert service(name, "start").returncode == 0
+    master_up(ext_port)
+    assert service(name, "restart").returncode == 0
+    master_up(ext_port)
+    assert service(name, "stop").returncode == 0
+    assert not agent_processes((program,))
+    stopped = service(name, "stop")
+    assert (stopped.returncode, stopped.stdout.strip()) == (0, f"{program} is not running")
+    usage = service(name, "reload-everything")
+    assert usage.returncode == 2 and "Usage:" in usage.stderr
+
+    run([pkg / "uninstall.sh", "--service-name", name], env=user_env(user), cwd=pkg)
+    assert_nothing_left(places["ws"], name, paths=[program, str(places["lib"] / "rcm_platform"),
+                                                   str(places["home"])])
