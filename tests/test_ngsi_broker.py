@@ -522,12 +522,12 @@ def test_throttling_drops_notifications_inside_the_window(client, receiver):
 
     wait_until(second_notification_arrived, timeout=10, interval=0.05, message="a notification after throttling")
     first, second = receiver.notifications()[:2]
-    assert second.received_at - first.received_at >= throttling - 0.05
+    assert second.received_at - first.received_at >= throttling - 0.25
     assert second.json["data"][0]["n"]["value"] >= 2   # the update inside the window was never notified
 
 
 def test_expiry_and_status(client, receiver):
-    expiring = subscribe(client, receiver.url + "?which=expiring", expires=_iso_in(1.0))
+    expiring = subscribe(client, receiver.url + "?which=expiring", expires=_iso_in(1.5))
     fence = subscribe(client, receiver.url + "?which=fence")
     create(client, robot(n={"value": 0}))
     assert {n.path for n in receiver.wait_for(2)} == {"/notify?which=expiring", "/notify?which=fence"}
