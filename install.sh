@@ -333,6 +333,7 @@ fi
 
 as_root() {
     if [ "$(id -u)" -eq 0 ]; then "$@"; else
+        command -v sudo >/dev/null || die "the next step needs root and sudo is not installed: run ./install.sh as root"
         echo "$PROG: the next step needs administration rights: sudo $(basename "$1") ${2:-}"
         sudo "$@"
     fi

@@ -26,31 +26,41 @@ done
 RCMP_BIN=/usr/local/bin/rcmp_n
 RCMP_HOME=/opt/rcm-platform
 RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
-if [ -r "/etc/default/$SERVICE" ]; then
+if [ ! -r "/etc/default/$SERVICE" ] && [ "$SERVICE" != rcmpd ]; then
+    # an (ext) installation's places are known only from its settings: never guess the standard ones
+    RCMP_BIN= RCMP_HOME= RCMP_PYLIB=
+    echo "$PROG: /etc/default/$SERVICE is missing: only the init script $SERVICE is removed" >&2
+elif [ -r "/etc/default/$SERVICE" ]; then
     # only the known keys, never the file as a script
     while IFS='=' read -r key value; do
         case "$key" in RCMP_BIN|RCMP_HOME|RCMP_PYLIB) [ -z "$value" ] || printf -v "$key" '%s' "$value" ;; esac
     done <"/etc/default/$SERVICE"
 fi
-for v in RCMP_BIN RCMP_HOME RCMP_PYLIB; do
-    case "${!v}" in /?*) ;; *) die "/etc/default/$SERVICE: $v='${!v}' is not an absolute path" ;; esac
-done
-
-if [ -x "/etc/init.d/$SERVICE" ]; then
-    "/etc/init.d/$SERVICE" stop || die "the daemon did not stop: nothing removed"
-    update-rc.d -f "$SERVICE" remove >/dev/null 2>&1 || true
+if [ -n "$RCMP_BIN$RCMP_HOME$RCMP_PYLIB" ]; then
+    for v in RCMP_BIN RCMP_HOME RCMP_PYLIB; do
+        case "${!v}" in /?*) ;; *) die "/etc/default/$SERVICE: $v='${!v}' is not an absolute path" ;; esac
+    done
 fi
-rm -f "/etc/init.d/$SERVICE" "/etc/default/$SERVICE" "/run/$SERVICE.pid"
-echo "Removed /etc/init.d/$SERVICE"
 
-removed_bin=no
-if [ -f "$RCMP_BIN" ]; then rm -f "$RCMP_BIN"; removed_bin=yes; fi
-[ "$removed_bin" = no ] || echo "Removed $RCMP_BIN"
-if [ -d "$RCMP_PYLIB/rcm_platform" ]; then
+if [ -e "/etc/init.d/$SERVICE" ]; then
+    if [ -x "/etc/init.d/$SERVICE" ]; then
+        "/etc/init.d/$SERVICE" stop || die "the daemon did not stop: nothing removed"
+    fi
+    update-rc.d -f "$SERVICE" remove >/dev/null 2>&1 || true
+    rm -f "/etc/init.d/$SERVICE"
+    echo "Removed /etc/init.d/$SERVICE"
+fi
+rm -f "/etc/default/$SERVICE" "/run/$SERVICE.pid"
+
+if [ -n "$RCMP_BIN" ] && [ -f "$RCMP_BIN" ]; then
+    rm -f "$RCMP_BIN"
+    echo "Removed $RCMP_BIN"
+fi
+if [ -n "$RCMP_PYLIB" ] && [ -d "$RCMP_PYLIB/rcm_platform" ]; then
     rm -rf -- "$RCMP_PYLIB/rcm_platform"
     echo "Removed $RCMP_PYLIB/rcm_platform"
 fi
-if [ -d "$RCMP_HOME" ]; then
+if [ -n "$RCMP_HOME" ] && [ -d "$RCMP_HOME" ]; then
     # the platform folder holds the configuration, the robotics data and the logs; refuse anything else
     if [ -e "$RCMP_HOME/.init.cfg" ] || [ -e "$RCMP_HOME/init.cfg" ] || [ -e "$RCMP_HOME/rosconsole.config" ] \
             || [ "$(basename "$RCMP_HOME")" = rcm-platform ]; then

@@ -47,6 +47,7 @@ fi
 if [ "$(id -u)" -eq 0 ]; then
     "$HERE/sub_uninst.sh" --service-name "$SERVICE"
 else
+    command -v sudo >/dev/null || die "the next step needs root and sudo is not installed: run ./uninstall.sh as root"
     echo "$PROG: the next step needs administration rights: sudo sub_uninst.sh"
     sudo "$HERE/sub_uninst.sh" --service-name "$SERVICE"
 fi
