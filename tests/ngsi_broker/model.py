@@ -175,11 +175,6 @@ def service_path_matches(entity_path, query_paths):
     return False
 
 
-def render_service_paths(query_paths):
-    """The ``Fiware-ServicePath`` text of a list of (path, recursive) pairs."""
-    return ",".join((path.rstrip("/") + "/#") if recursive else path for path, recursive in query_paths)
-
-
 # --- time -----------------------------------------------------------------------------------------------
 
 def iso_time(epoch):

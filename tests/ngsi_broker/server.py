@@ -37,6 +37,8 @@ SERVICE_NOT_FOUND = "Service not found. Check your URL as probably it is wrong."
 
 
 class Response:
+    """What a handler answers: status, body bytes, content type (None: no body) and extra headers."""
+
     def __init__(self, status, body=b"", content_type="application/json", headers=None):
         self.status = status
         self.body = body
@@ -347,6 +349,7 @@ class _Handler(BaseHTTPRequestHandler):
         if response.content_type and response.body:
             self.send_header("Content-Type", response.content_type)
         self.send_header("Content-Length", str(len(response.body)))
+        response.headers.setdefault("Fiware-Correlator", self.headers.get("Fiware-Correlator") or str(uuid.uuid1()))
         for name, value in response.headers.items():
             self.send_header(name, value)
         if close or self.close_connection:
