@@ -15,7 +15,7 @@ import pytest
 
 from tests.ngsi_broker.testing import start_broker
 from tests.support.firos import (Firos, SEED_WHITELIST, echoed_messages, request, rostopic_echo, rostopic_pub,
-                                 wait_subscribed, write_config)
+                                 write_config)
 from tests.support.polling import wait_until
 
 SEED_QUERY = {"entities": [{"type": "ROBOT", "isPattern": "true", "id": "end_end_test"}], "attributes": ["s1"]}

@@ -130,10 +130,3 @@ def echoed_messages(procs, proc):
             docs.append(doc)
     return docs
 
-
-def wait_subscribed(master, topic, node="/firos", timeout=10.0):
-    """Wait until ``node`` subscribes to ``topic`` in the ROS graph."""
-    def subscribed():
-        _, subs, _ = master.system_state()
-        return any(t == topic and node in nodes for t, nodes in subs)
-    wait_until(subscribed, timeout=timeout, message=f"{node} to subscribe to {topic}")

@@ -7,7 +7,6 @@ of a connected robot is published on them, FIROS's own updates excepted. Robots 
 brought back by graph discovery until they are connected again. Errors a client can cause raise `ApiError`.
 """
 
-import json
 import logging
 import re
 import threading
@@ -15,7 +14,7 @@ from dataclasses import dataclass, field
 
 from include import discovery
 from include.config import ConfigError
-from include.discovery import TopicInfo, attribute_name, python_type, ros_type, topic_from_attribute
+from include.discovery import attribute_name, python_type, ros_type, topic_from_attribute
 from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError, \
     parse_notification
 from include.ros_conversion import ConversionError, dict_to_message, load_message_class
@@ -334,6 +333,3 @@ class Firos:
             for robot in robots:
                 self._update_subscription(robot)
 
-
-def dumps(obj):
-    return json.dumps(obj, separators=(", ", ": "))
