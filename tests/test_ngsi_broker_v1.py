@@ -1,8 +1,8 @@
 """The stand-in broker's NGSI v1 side (Orion before 3.10), including the seed guide's two curl commands verbatim.
 
 One broker child serves the module; each test has its own tenant. The seed's commands run as real ``curl``
-processes (argv lists, the heredoc fed on stdin; the seed pipes the answer to ``python -mjson.tool``, here it
-is parsed with ``json``). Notifications go to real HTTP servers on loopback.
+processes (argv lists, the heredoc fed on stdin) whose answer goes through a real ``python3 -mjson.tool``, as
+in the seed, and is then parsed. Notifications go to real HTTP servers on loopback.
 """
 
 import json
@@ -86,7 +86,11 @@ def seed_curl(broker, operation, heredoc, service=None):
         argv[4:4] = ["--header", f"Fiware-Service: {service}"]
     done = subprocess.run(argv, input=heredoc.encode(), capture_output=True, timeout=10, check=False)
     assert done.returncode == 0, done.stderr
-    return json.loads(done.stdout)
+    # "| python -mjson.tool": the answer must be something json.tool accepts (a second process, no shell)
+    pretty = subprocess.run(["/usr/bin/python3", "-mjson.tool"], input=done.stdout, capture_output=True,
+                            timeout=10, check=False)
+    assert pretty.returncode == 0, pretty.stderr
+    return json.loads(pretty.stdout)
 
 
 def shell_heredoc(text):
