@@ -114,7 +114,7 @@ def test_seed_end_to_end(version, procs, ros_master, tmp_path):
 def test_whitelist_descriptions_robots_and_nested_round_trip(procs, ros_master, tmp_path):
     broker = start_broker(procs)
     whitelist = dict(SEED_WHITELIST)
-    whitelist["navbot"] = {"publisher": ["cmd_in", "goal"], "subscriber": ["twist", "pose_st"]}
+    whitelist["navbot"] = {"publisher": ["cmd_in", "goal"], "subscriber": ["twist", "pose_st", "event"]}
     descriptions = {"turtle1": {"descriptions": ["http://wiki.ros.org/ROS/Tutorials/UsingRxconsoleRoslaunch",
                                                  "http://wiki.ros.org/ROS/Tutorials/UnderstandingNodes"]}}
     config = write_config(str(tmp_path / "config"), broker.port, whitelist=whitelist, descriptions=descriptions)
@@ -131,6 +131,8 @@ def test_whitelist_descriptions_robots_and_nested_round_trip(procs, ros_master, 
                   "--pub", "/robot1/move_base/status", "std_msgs/String", json.dumps({"data": "busy"}),
                   "--pub", "/navbot/twist", "geometry_msgs/Twist", json.dumps(twist),
                   "--pub", "/navbot/pose_st", "geometry_msgs/PoseStamped", json.dumps(pose),
+                  "--pub", "/navbot/event", "robotics_msgs/CB_Event",          # a type from the catkin workspace
+                  json.dumps({"entity_name": "navbot", "entity_status": 1}),
                   "--sub", "/turtle1/cmd_vel", "geometry_msgs/Twist",
                   "--sub", "/robot1/move_base/goal", "geometry_msgs/PoseStamped",
                   "--sub", "/navbot/cmd_in", "geometry_msgs/Twist",
@@ -183,6 +185,11 @@ def test_whitelist_descriptions_robots_and_nested_round_trip(procs, ros_master, 
     pose_value = nav_entity["pose_st"]["value"]
     assert {k: v for k, v in twist_value.items() if k != "firosstamp"} == twist
     assert without_seq(pose_value) == without_seq(pose)
+    wait_until(lambda: v2_value(broker, "navbot", "event"), timeout=15, message="navbot.event")
+    event = v2_value(broker, "navbot", "event")
+    assert event["type"] == "robotics_msgs.msg.CB_Event"
+    assert {k: v for k, v in event["value"].items() if k != "firosstamp"} == {"entity_name": "navbot",
+                                                                              "entity_status": 1}
 
     # ... and back: the broker's own values sent as commands come out on ROS unchanged
     wait_subscription(firos, "navbot")
@@ -330,6 +337,9 @@ def test_ros_connect_disconnect_service_headers_and_cleanup_at_shutdown(procs, r
     firos = Firos(procs, ros_master, config).start()
     wait_until(lambda: (entity("end_end_test") or {}).get("s1"), timeout=15, message="s1 in tenant robots")
     assert entity("end_end_test", headers={}) is None             # not in the default tenant
+    status, body = firos.get("/robot/end_end_test")                # read back through NGSI v1 queryContext
+    assert status == 200 and body["attributes"]["s1"]["value"]["data"] == "x", body
+    assert body["attributes"]["s1"]["type"] == "std_msgs.msg.String"
     wait_subscription(firos, "end_end_test")
     assert len(subscriptions()) == 1
 

@@ -92,7 +92,10 @@ class Firos:
                     self.disabled.clear()
                 else:
                     self.disabled.discard(name)
-            self._scan(only=name)
+            try:
+                self._scan(only=name)
+            except OSError as exc:
+                raise ApiError(503, f"cannot read the ROS graph: {exc}") from None
         with self._lock:
             if name is None:
                 return sorted(self.robots)
