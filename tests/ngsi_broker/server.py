@@ -227,6 +227,9 @@ class Faults:
 
 class _Handler(BaseHTTPRequestHandler):
     protocol_version = "HTTP/1.1"
+    # headers and body leave in two sends: without TCP_NODELAY, Nagle's algorithm holds the body back until
+    # the client's delayed ACK (about 40 ms per answer with a body on loopback)
+    disable_nagle_algorithm = True
 
     def version_string(self):
         return "orion-standin"

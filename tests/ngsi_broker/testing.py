@@ -79,6 +79,7 @@ class NotificationReceiver:
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
+            disable_nagle_algorithm = True
 
             def log_message(self, fmt, *args):
                 pass
