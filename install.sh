@@ -312,6 +312,15 @@ trap 'rm -f "$CFG_TMP"' EXIT
     for key in $keys; do
         [ -z "${ANS[$key]}" ] || echo "$key=${ANS[$key]}"
     done
+    # keys the wizard does not manage (heartbeat_interval, log_max_bytes, ...) survive a re-run as they were
+    if [ -r "$CFG_FILE" ]; then
+        managed=" name robot ip_master inbound_open_ports $keys ext_interface ext_address ext_port ros_port_base "
+        while IFS= read -r line; do
+            if [[ "$line" =~ ^[[:space:]]*([A-Za-z_][A-Za-z0-9_]*)[[:space:]]*[=:] ]]; then
+                case "$managed" in *" ${BASH_REMATCH[1]} "*) ;; *) echo "$(trim "$line")" ;; esac
+            fi
+        done <"$CFG_FILE"
+    fi
 } >"$CFG_TMP"
 chmod 0644 "$CFG_TMP"
 

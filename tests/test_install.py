@@ -295,15 +295,27 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     assert write.returncode != 0 and "readonly" in write.stderr
     assert oct(os.stat(db).st_mode & 0o777) in ("0o644", "0o600") and os.stat(db).st_uid == 0
 
-    # -- running the wizard again changes the configuration and is safe -----------------------------------------
+    # -- running the wizard again changes the configuration, keeps an administrator's own keys, is safe ---------
+    with open(os.path.join(HOME, ".init.cfg"), "a") as f:
+        f.write("log_max_bytes=1024\n")
     again = run(install + ["--replace-ws", "no", "--inbound-ports", "10200, 10201"], env=user_env(user), cwd=pkg)
     assert "Building the workspace" not in again.stdout  # kept as it was
-    assert "inbound_open_ports=10200, 10201" in open(os.path.join(HOME, ".init.cfg")).read()
+    config = open(os.path.join(HOME, ".init.cfg")).read()
+    assert "inbound_open_ports=10200, 10201" in config and "log_max_bytes=1024" in config
     new_pid = wait_until(lambda: [p for p in agent_processes() if p != pid], timeout=30,
                          message="the restarted agent")
     assert len(agent_processes()) == 1 and new_pid[0] != pid
     master_up(ext_port)
     assert service("rcmpd", "status").returncode == 0
+
+    # -- "Diagnosis procedures": /opt/rcm-platform/log/rcmp.log rolls over at its size, keeping 5 ---------------
+    log_dir = os.path.join(HOME, "log")
+    for i in range(150):  # each refused provisioning is logged with its reason
+        assert http_json(f"http://127.0.0.1:{ext_port}/platform_instance/provisioning",
+                         {"pi_name": f"r{i}", "pi_service_logic": "nosuch"})[0] == 404
+    wait_until(lambda: os.path.exists(os.path.join(log_dir, "rcmp.log.5")), timeout=20, message="rcmp.log.5")
+    rotated = sorted(n for n in os.listdir(log_dir) if n.startswith("rcmp.log"))
+    assert rotated == ["rcmp.log"] + [f"rcmp.log.{i}" for i in range(1, 6)]
 
     # -- stop, status, uninstall -------------------------------------------------------------------------------
     stop = service("rcmpd", "stop")

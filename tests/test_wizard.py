@@ -298,3 +298,25 @@ def test_help_names_every_answer_option(tmp_path):
         for word in words + ["--start", "--replace-ws", "--non-interactive", "--home", "--workspace",
                              "--service-name", "--vpn-address", "--ic-port", "--skip-deps", "--dry-run"]:
             assert word in result.stdout, f"{role} --help lacks {word}"
+
+
+def test_rerun_keeps_keys_the_wizard_does_not_manage(tmp_path):
+    setup = Setup(tmp_path, "master")
+    setup.platform.mkdir()
+    (setup.platform / ".init.cfg").write_text(
+        "[main]\ninbound_open_ports=10100\nlog_max_bytes = 4096\nheartbeat_interval=1.5\next_port=8080\n")
+    result = setup.run("", "-n", "--inbound-ports", "10300, 10301")
+    assert result.returncode == 0, result.stderr
+    assert setup.config_lines(result.stdout) == [
+        "[main]", "inbound_open_ports=10300, 10301", "ext_port=8080", "vpn_interface=nosuch0",
+        "log_max_bytes = 4096", "heartbeat_interval=1.5"]
+
+
+def test_uninstall_refuses_an_unknown_option_before_doing_anything(tmp_path):
+    result = subprocess.run([os.path.join(ROOT, "uninstall.sh"), "--bogus"], capture_output=True, text=True,
+                            timeout=30)
+    assert result.returncode == 2
+    assert "unknown option '--bogus'" in result.stderr
+    help_text = subprocess.run([os.path.join(ROOT, "uninstall.sh"), "--help"], capture_output=True, text=True,
+                               timeout=30)
+    assert help_text.returncode == 0 and "--service-name" in help_text.stdout
