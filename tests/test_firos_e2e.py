@@ -9,16 +9,17 @@ malformed notifications and API bodies.
 import json
 import random
 import re
-import sys
 
 import pytest
 
 from tests.ngsi_broker.testing import start_broker
-from tests.support.firos import (Firos, SEED_WHITELIST, echoed_messages, request, rostopic_echo, rostopic_pub,
-                                 write_config)
+from tests.support.firos import (Firos, SEED_WHITELIST, echoed_messages, received, request, rostopic_echo,
+                                 rostopic_pub, talker, v2_entity, v2_value, wait_subscription, write_config)
 from tests.support.polling import wait_until
 
 SEED_QUERY = {"entities": [{"type": "ROBOT", "isPattern": "true", "id": "end_end_test"}], "attributes": ["s1"]}
+
+pytestmark = pytest.mark.slow   # real ROS master, broker and FIROS children
 
 
 def seed_update(number):
@@ -27,42 +28,11 @@ def seed_update(number):
         {"name": "COMMAND", "type": "COMMAND", "value": ["p1"]}]}], "updateAction": "APPEND"}
 
 
-def v2_entity(broker, eid):
-    status, body = request(broker.port, "GET", f"/v2/entities/{eid}?type=ROBOT")
-    return body if status == 200 else None
-
-
-def v2_value(broker, eid, attr):
-    entity = v2_entity(broker, eid)
-    return entity.get(attr) if entity else None
-
-
-def talker(procs, master, tmp_path, *args, name="firos_talker"):
-    argv = [sys.executable if sys.executable.startswith("/usr/bin") else "/usr/bin/python3",
-            "-m", "tests.support.firos_talker", *args]
-    proc = procs.start(argv, env=master.env({"ROS_LOG_DIR": str(tmp_path / "roslog")}), name=name)
-    wait_until(lambda: "READY" in procs.output(proc), timeout=15, message=f"{name} to start")
-    return proc
-
-
-def received(procs, proc, topic):
-    out = []
-    for line in procs.output(proc).splitlines():
-        if line.startswith(f"RECV {topic} "):
-            out.append(json.loads(line.split(" ", 2)[2]))
-    return out
-
-
 def without_seq(value):
     """A PoseStamped-like dict without firosstamp and header.seq (rospy numbers headers as it publishes)."""
     out = {k: v for k, v in value.items() if k != "firosstamp"}
     out["header"] = {k: v for k, v in out["header"].items() if k != "seq"}
     return out
-
-
-def wait_subscription(firos, robot):
-    return wait_until(lambda: firos.stats()["subscriptions"].get(robot), timeout=10,
-                      message=f"FIROS's broker subscription for {robot}")
 
 
 @pytest.mark.parametrize("version", ["v1", "v2"])

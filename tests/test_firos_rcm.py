@@ -8,11 +8,14 @@ commands from the broker reach the service space's topics; `r_disconnection` rem
 import json
 import socket
 
+import pytest
+
 from tests.ngsi_broker.testing import start_broker
-from tests.support.firos import Firos, request, write_config
+from tests.support.firos import Firos, received, request, talker, v2_entity, wait_subscription, write_config
 from tests.support.polling import wait_until
 from tests.support.ports import free_port, port_accepts
-from tests.test_firos_e2e import received, talker, v2_entity, wait_subscription
+
+pytestmark = pytest.mark.slow   # real ROS master, broker and FIROS children
 
 
 class AgentLine:

@@ -130,3 +130,35 @@ def echoed_messages(procs, proc):
             docs.append(doc)
     return docs
 
+
+def v2_entity(broker, eid):
+    """The broker's v2 entity ``eid`` of type ROBOT, or None."""
+    status, body = request(broker.port, "GET", f"/v2/entities/{eid}?type=ROBOT")
+    return body if status == 200 else None
+
+
+def v2_value(broker, eid, attr):
+    entity = v2_entity(broker, eid)
+    return entity.get(attr) if entity else None
+
+
+def talker(procs, master, tmp_path, *args, name="firos_talker"):
+    """Start tests/support/firos_talker.py (see its docstring) and wait until it is ready."""
+    argv = ["/usr/bin/python3", "-m", "tests.support.firos_talker", *args]
+    proc = procs.start(argv, env=master.env({"ROS_LOG_DIR": str(tmp_path / "roslog")}), name=name)
+    wait_until(lambda: "READY" in procs.output(proc), timeout=15, message=f"{name} to start")
+    return proc
+
+
+def received(procs, proc, topic):
+    """The messages (dicts) a firos_talker child printed for ``topic`` so far."""
+    out = []
+    for line in procs.output(proc).splitlines():
+        if line.startswith(f"RECV {topic} "):
+            out.append(json.loads(line.split(" ", 2)[2]))
+    return out
+
+
+def wait_subscription(firos, robot):
+    return wait_until(lambda: firos.stats()["subscriptions"].get(robot), timeout=10,
+                      message=f"FIROS's broker subscription for {robot}")
