@@ -63,7 +63,7 @@ check_service() {
 }
 
 do_install() {
-    local role= src= home= bin= lib= service= ws= config=
+    local role='' src='' home='' bin='' lib='' service='' ws='' config=''
     while [ $# -gt 0 ]; do
         [ $# -ge 2 ] || die "install: $1 needs a value" 2
         case "$1" in

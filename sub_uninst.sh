@@ -28,7 +28,7 @@ RCMP_HOME=/opt/rcm-platform
 RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
 if [ ! -r "/etc/default/$SERVICE" ] && [ "$SERVICE" != rcmpd ]; then
     # an (ext) installation's places are known only from its settings: never guess the standard ones
-    RCMP_BIN= RCMP_HOME= RCMP_PYLIB=
+    RCMP_BIN='' RCMP_HOME='' RCMP_PYLIB=''
     echo "$PROG: /etc/default/$SERVICE is missing: only the init script $SERVICE is removed" >&2
 elif [ -r "/etc/default/$SERVICE" ]; then
     # only the known keys, never the file as a script
