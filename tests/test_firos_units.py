@@ -297,8 +297,9 @@ def test_sender_batches_and_honours_pub_frequency(tmp_path, broker):
     try:
         sender.create("bot", {})
         wait_until(lambda: _entity(settings, "bot") is not None, message="the entity")
-        for name in ("a", "b", "c"):
-            sender.offer("bot", name, "std_msgs.msg.Int32", {"data": 1})
+        with sender._cond:   # the three arrive "at once" (the sender cannot take the first one alone)
+            for name in ("a", "b", "c"):
+                sender.offer("bot", name, "std_msgs.msg.Int32", {"data": 1})
         wait_until(lambda: sender.snapshot_stats()["forwarded"] == 3, message="three attributes sent")
         assert sender.snapshot_stats()["requests"] == 1          # one batch
         assert _entity(settings, "bot")["COMMAND"]["value"] == ["a", "b", "c"]
