@@ -291,7 +291,7 @@ def test_sender_keeps_only_the_newest_value_while_the_broker_is_away(tmp_path, v
 
 
 def test_sender_batches_and_honours_pub_frequency(tmp_path, broker):
-    settings = _settings(tmp_path, broker.port, pub_frequency=300)
+    settings = _settings(tmp_path, broker.port, pub_frequency=1000)
     sender = Sender(NgsiClient(settings), settings)
     sender.start()
     try:
@@ -306,7 +306,7 @@ def test_sender_batches_and_honours_pub_frequency(tmp_path, broker):
         first = time.monotonic()
         sender.offer("bot", "a", "std_msgs.msg.Int32", {"data": 2})
         wait_until(lambda: _entity(settings, "bot")["a"]["value"]["data"] == 2, message="the second value")
-        assert time.monotonic() - first >= 0.2                    # 300 ms after the first send of "a"
+        assert time.monotonic() - first >= 0.5                    # 1000 ms after the first send of "a"
     finally:
         sender.stop()
 
