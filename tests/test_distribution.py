@@ -304,3 +304,22 @@ def test_tool_runs_with_the_system_python():
     with open(TOOL) as f:
         assert f.readline().strip() == "#!/usr/bin/python3"
     assert os.stat(TOOL).st_mode & stat.S_IXUSR
+
+
+def _bash_words(text, start, end):
+    block = text.split(start, 1)[1].split(end, 1)[0]
+    if start.startswith("#"):  # a comment line opens the block: the words start on the next line
+        block = block.split("\n", 1)[1]
+    return {w for line in block.splitlines() for w in line.split("#", 1)[0].split()}
+
+
+def test_installer_installs_the_ros_packages_development_uses():
+    """sub_inst.sh's ROS list (shipped in the zips) must not drift from scripts/install-deps.sh's."""
+    with open(os.path.join(ROOT, "scripts", "install-deps.sh")) as f:
+        dev = _bash_words(f.read(), "# ROS 1", "# the agent")
+    with open(os.path.join(ROOT, "sub_inst.sh")) as f:
+        text = f.read()
+    shipped = _bash_words(text, "ROS_PACKAGES=(", ")")
+    agent = _bash_words(text, "AGENT_PACKAGES=(", ")") | _bash_words(text, "MASTER_PACKAGES=(", ")")
+    assert dev and dev <= shipped, f"missing from sub_inst.sh: {sorted(dev - shipped)}"
+    assert {"python3-twisted", "python3-netifaces", "openvpn", "sqlite3"} <= agent
