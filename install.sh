@@ -288,7 +288,10 @@ else
 fi
 ask start check_yesno yes "Do you want to start the rcm daemon now $(yn_question yes)"
 if [ "$ROLE" = robot ] && [ "${ANS[robot]}" = yes ] && [ -n "${ANS[ros_port_base]}" ]; then
-    die "ros_port_base (--ros-port-base) is only for a server virtual machine (--robot no): nothing was changed" 2
+    if [ -n "${OPT[ros_port_base]+set}" ]; then
+        die "ros_port_base (--ros-port-base) is only for a server virtual machine (--robot no): nothing was changed" 2
+    fi
+    ANS[ros_port_base]=  # kept from a server VM's configuration: a robot has no service spaces of its own
 fi
 
 # --- the configuration file ----------------------------------------------------------------------------------------
@@ -314,7 +317,8 @@ trap 'rm -f "$CFG_TMP"' EXIT
     done
     # keys the wizard does not manage (heartbeat_interval, log_max_bytes, ...) survive a re-run as they were
     if [ -r "$CFG_FILE" ]; then
-        managed=" name robot ip_master inbound_open_ports $keys ext_interface ext_address ext_port ros_port_base "
+        if [ "$ROLE" = master ]; then managed=" inbound_open_ports $keys "
+        else managed=" name robot ip_master inbound_open_ports $keys ext_interface ext_address ext_port ros_port_base "; fi
         while IFS= read -r line; do
             if [[ "$line" =~ ^[[:space:]]*([A-Za-z_][A-Za-z0-9_]*)[[:space:]]*[=:] ]]; then
                 case "$managed" in *" ${BASH_REMATCH[1]} "*) ;; *) echo "$(trim "$line")" ;; esac

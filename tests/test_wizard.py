@@ -320,3 +320,23 @@ def test_uninstall_refuses_an_unknown_option_before_doing_anything(tmp_path):
     help_text = subprocess.run([os.path.join(ROOT, "uninstall.sh"), "--help"], capture_output=True, text=True,
                                timeout=30)
     assert help_text.returncode == 0 and "--service-name" in help_text.stdout
+
+
+def test_server_vm_turned_robot_drops_its_ros_port_base(tmp_path):
+    setup = Setup(tmp_path, "robot")
+    setup.platform.mkdir()
+    (setup.platform / "init.cfg").write_text("[main]\nname=vm1\nrobot=no\nip_master=10.0.0.1\nros_port_base=12000\n")
+    result = setup.run("", "-n", "--robot", "yes")
+    assert result.returncode == 0, result.stderr
+    assert setup.config_lines(result.stdout) == ["[main]", "name=vm1", "robot=yes", "ip_master=10.0.0.1",
+                                                 "vpn_interface=nosuch0"]
+
+
+def test_master_rerun_keeps_its_own_name_key(tmp_path):
+    setup = Setup(tmp_path, "master")
+    setup.platform.mkdir()
+    (setup.platform / ".init.cfg").write_text("[main]\nname=central\ninbound_open_ports=10100\n")
+    result = setup.run("", "-n")
+    assert result.returncode == 0, result.stderr
+    assert setup.config_lines(result.stdout) == ["[main]", "inbound_open_ports=10100", "vpn_interface=nosuch0",
+                                                 "name=central"]
