@@ -231,9 +231,11 @@ def main(argv=None):
     clean = max([r["rate"] for r in runs if r["skipped"] == 0] or [0])
     up50, up99 = percentile(up, 50), percentile(up, 99)
     down50, down99 = percentile(down, 50), percentile(down, 99)
+    load = os.getloadavg()
     lines = [
         "FIROS with the stand-in broker (NGSI v2), ROS master and this benchmark's rospy node on loopback "
-        f"(`bench/bench_firos.py`{' --quick' if quick else ''}).",
+        f"(`bench/bench_firos.py`{' --quick' if quick else ''}); load average at the end {load[0]:.1f} / "
+        f"{load[1]:.1f} (1 / 5 min): the figures drop when other work shares the two cores.",
         "",
         "| path (10 Hz, %d samples) | p50 | p99 | mean | target |" % len(up),
         "| --- | --- | --- | --- | --- |",
