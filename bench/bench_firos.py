@@ -6,7 +6,6 @@ children; this process is the ROS peer (a rospy node) and the broker client.
 
 - ROS → broker: publish a distinct std_msgs/String and time until the broker's own v2 notification of the new
   value reaches a receiver here (so the value is stored and readable; the notifier's delay is included).
-  (Polling the stand-in with GET measured ~40 ms per poll: its answers are two writes under Nagle's algorithm.)
 - broker → ROS: `POST /v2/op/update` with `cmd` and `COMMAND`, timed until the rospy subscriber here gets it
   (broker notification → FIROS → ROS).
 - Throughput: ten topics of std_msgs/Int32, distinct values round-robin at a fixed total rate for a few seconds;
