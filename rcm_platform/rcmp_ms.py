@@ -44,6 +44,7 @@ import shlex
 import signal
 import socket
 import time
+import uuid
 from typing import Protocol
 
 from twisted.internet import defer, error as ierror, protocol, task, threads
@@ -548,8 +549,8 @@ def launcher_nodes(package, launch_file, params=""):
     import roslaunch.config
     import roslaunch.rlutil
     args = shlex.split(params or "")
-    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)
-    config = roslaunch.config.load_config_default([(resolved[0], resolved)], None, verbose=False,
+    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)  # drops name:=value
+    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
                                                   assign_machines=False)
     nodes = []
     for node in config.nodes:
@@ -814,6 +815,14 @@ class _SpaceHost:
         space.master = self.table.spawn(space.key("rosmaster"), ["rosmaster", "--core", "-p", str(port)],
                                         env, f"{space.name}-rosmaster", core=True)
         yield self._wait_for_master(space)
+        if space.cancelled:
+            return
+        # roscore sets /run_id; roslaunch --wait (launchers) waits for it and rosout names its log dir after it
+        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+        try:
+            yield proxy.callRemote("setParam", "/rcmp_ms", "/run_id", str(uuid.uuid1()))
+        except Exception as exc:
+            raise SpaceError(f"the ROS master on {space.ros_master_uri} refused to set /run_id: {exc}")
         if space.cancelled:
             return
         space.rosout = self.table.spawn(space.key("rosout"), ["rosrun", "rosout", "rosout"], env,

@@ -2,8 +2,10 @@
 real children (setsid, process groups, escalation, logs) under a running Twisted reactor."""
 
 import os
+import shutil
 import signal
 import sys
+import tempfile
 
 import pytest
 from twisted.internet import defer, error as ierror, reactor, task
@@ -361,7 +363,8 @@ class RealProcessTests(unittest.TestCase):
     timeout = 30
 
     def setUp(self):
-        self.log_dir = self.mktemp()
+        self.log_dir = tempfile.mkdtemp(prefix="ms-table-")
+        self.addCleanup(shutil.rmtree, self.log_dir, True)
         self.table = ProcessTable(reactor, self.log_dir, settle_time=0.3, stop_timeouts=(0.5, 0.5))
         self.pgids = []
 
