@@ -348,3 +348,71 @@ def test_notification_address_from_interface_or_endpoint(tmp_path):
         core.notification_address(settings)
     settings.endpoint_address, settings.endpoint_port = "10.1.2.3", 10101
     assert core.notification_address(settings) == ("10.1.2.3", 10101)
+
+
+class RecordingBroker:
+    """A real HTTP server on loopback that records each request's client port and body, answering 500 to the
+    first ``failures`` requests and 204 afterwards (a broker in trouble, then well)."""
+
+    def __init__(self, failures=0):
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+        import threading
+        self.requests = []
+        self.failures = failures
+        recorder = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def log_message(self, *args):
+                pass
+
+            def do_POST(self):
+                body = json.loads(self.rfile.read(int(self.headers["Content-Length"])))
+                recorder.requests.append((self.client_address[1], self.path, body))
+                status = 500 if len(recorder.requests) <= recorder.failures else 204
+                self.send_response(status)
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.httpd.server_address[1]
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def test_client_reuses_one_connection(tmp_path):
+    server = RecordingBroker()
+    try:
+        client = NgsiClient(_settings(tmp_path, server.port))
+        for i in range(5):
+            client.update({"bot": {"a": ("std_msgs.msg.Int32", {"data": i})}})
+        assert len(server.requests) == 5
+        assert len({port for port, _, _ in server.requests}) == 1       # HTTP/1.1 keep-alive
+        assert server.requests[-1][1] == "/v2/op/update"
+        assert server.requests[-1][2]["entities"][0]["a"] == {"type": "std_msgs.msg.Int32", "value": {"data": 4}}
+    finally:
+        server.close()
+
+
+def test_sender_retries_a_broker_answering_500_and_keeps_the_newest(tmp_path):
+    server = RecordingBroker(failures=3)
+    settings = _settings(tmp_path, server.port)
+    sender = Sender(NgsiClient(settings), settings)
+    sender.start()
+    try:
+        sender.create("bot", {})
+        wait_until(lambda: not sender.broker_up(), message="the sender to see the 500")
+        for i in range(10):
+            sender.offer("bot", "a", "std_msgs.msg.Int32", {"data": i}, stamp=float(i))
+        wait_until(lambda: sender.snapshot_stats()["forwarded"] == 1, timeout=10, message="the value sent")
+        bodies = [body for _, _, body in server.requests]
+        assert len(bodies) >= 5 and all(b["actionType"] == "append" for b in bodies)
+        assert bodies[-1]["entities"][0]["a"]["value"] == {"firosstamp": 9.0, "data": 9}
+        assert sender.broker_up() and sender.snapshot_stats()["errors"] >= 3
+    finally:
+        sender.stop()
+        server.close()
