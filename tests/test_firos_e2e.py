@@ -6,7 +6,9 @@ descriptions, nested messages both ways, `/robots` and `/robot/<name>`, the whit
 malformed notifications and API bodies.
 """
 
+import http.client
 import json
+import os
 import random
 import re
 
@@ -26,6 +28,16 @@ def seed_update(number):
     return {"contextElements": [{"type": "ROBOT", "isPattern": "false", "id": "end_end_test", "attributes": [
         {"name": "p1", "type": "std_msgs.msg.String", "value": "{%27data%27: %27" + str(number) + "%27}"},
         {"name": "COMMAND", "type": "COMMAND", "value": ["p1"]}]}], "updateAction": "APPEND"}
+
+
+def request_to(host, port, path):
+    conn = http.client.HTTPConnection(host, port, timeout=10)
+    try:
+        conn.request("GET", path)
+        resp = conn.getresponse()
+        return resp.status, resp.read()
+    finally:
+        conn.close()
 
 
 def without_seq(value):
@@ -312,6 +324,19 @@ def test_ros_connect_disconnect_service_headers_and_cleanup_at_shutdown(procs, r
     assert body["attributes"]["s1"]["type"] == "std_msgs.msg.String"
     wait_subscription(firos, "end_end_test")
     assert len(subscriptions()) == 1
+
+    # seed "List of Running Processes" / "Network interfaces Up & Open": a firos core.py process, listening on
+    # the any-address (so another loopback address reaches it too)
+    cmdlines = []
+    for entry in os.listdir("/proc"):
+        try:
+            if entry.isdigit() and os.getpgid(int(entry)) == firos.process.pid:
+                with open(f"/proc/{entry}/cmdline", "rb") as f:
+                    cmdlines.append(f.read().replace(b"\0", b" ").decode())
+        except OSError:
+            continue
+    assert any("firos" in c and "core.py" in c and "python" in c for c in cmdlines), cmdlines
+    assert request_to("127.0.0.2", firos.port, "/robots")[0] == 200
 
     rostopic_pub(procs, ros_master, tmp_path, "/firos/disconnect", "std_msgs/String", "data: end_end_test",
                  name="disconnect")
