@@ -224,6 +224,7 @@ class MasterAgent(service.Service):
             return {}
         if op == "bye":
             log.info("robot %s is leaving: %s", session.name, body["reason"])
+            peer.info["said_bye"] = True
             self.reactor.callLater(0, peer.close, f"robot said bye: {body['reason']}")
             return {}
         raise ic.Refused(f"the master agent does not serve op {op!r}", code="unknown_op")
@@ -232,7 +233,10 @@ class MasterAgent(service.Service):
         session = peer.info.get("session")
         if session is None or session.ended:
             return
-        log.warning("lost robot %s: %s", session.name, why)
+        if peer.info.get("said_bye"):
+            log.info("robot %s left: %s", session.name, why)
+        else:
+            log.warning("lost robot %s: %s", session.name, why)
         self._locked(session.name, self._end_session, session, f"connection lost: {why}")
 
     # -- hello ------------------------------------------------------------------------------------------

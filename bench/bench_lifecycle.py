@@ -1,0 +1,303 @@
+"""Robot lifecycle benchmark (issue 4, item 8): time to pair beside its floor, and memory per service space.
+
+(a) Time from starting a robot agent (``python3 -m rcm_platform --home DIR``) to ``paired: true`` in
+    ``GET /platform_instance/read``, for a service logic with one S-side and one R-side node (``talker.py`` of the
+    test package), p50 of N runs against one running master. Beside it, the floor measured in the same run: a
+    bare ``rosmaster --core`` until it answers, plus one ``rosrun`` node until it is registered with it (each
+    p50 of N). Target: within 1.5x of the floor.
+(b) 20 simulated robots (agents on 127.0.0.2 ... 127.0.0.21) started together: the time until all are paired,
+    and the master side's memory per service space: the resident (RSS) and proportional (PSS, shared pages
+    divided among their users) memory of the master agent and every process it started, after all are paired
+    minus before any connected, divided by the number of spaces. Target: under 60 MB per service space.
+
+Everything runs on loopback with real agents and real ROS, like the lifecycle tests (``tests.support.lifecycle``).
+Results go to docs/PERFORMANCE.md (section ``lifecycle``); ``main`` returns 1 when a target is missed.
+"""
+
+import argparse
+import contextlib
+import os
+import statistics
+import sys
+import tempfile
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+import rosgraph  # noqa: E402
+
+from bench.report import write_section  # noqa: E402
+from tests.support.lifecycle import Platform  # noqa: E402
+from tests.support.polling import wait_until  # noqa: E402
+from tests.support.ports import free_port  # noqa: E402
+from tests.support.processes import ProcessGroup, ros_env  # noqa: E402
+
+TARGET_RATIO = 1.5
+TARGET_MB_PER_SPACE = 60.0
+POLL = 0.01
+
+
+def talker(name, side, topic):
+    return {"sn_package": "robotics_test", "sn_type": "talker.py", "sn_name": name, "sn_params": f"_topic:={topic}",
+            "sn_side": side}
+
+
+LOGIC = [talker("brain", "S", "brain_chatter"), talker("body", "R", "body_chatter")]
+
+
+# -- floor ------------------------------------------------------------------------------------------------------
+
+def floor_once(procs, tmp):
+    """(seconds for a bare rosmaster to answer, seconds for one rosrun node to register)."""
+    port = free_port()
+    uri = f"http://127.0.0.1:{port}/"
+    env = ros_env({"ROS_LOG_DIR": os.path.join(tmp, "floor-roslog"), "ROS_IP": "127.0.0.1"}, master_uri=uri)
+    master = rosgraph.Master("/bench_floor", master_uri=uri)
+    started = time.monotonic()
+    core = procs.start(["rosmaster", "--core", "-p", str(port)], env=env, name="floor-rosmaster")
+    wait_until(master.is_online, timeout=20, interval=POLL, message="the floor's ROS master")
+    master_s = time.monotonic() - started
+
+    def registered():
+        try:
+            return master.lookupNode("/floor_talker")
+        except Exception:
+            return None
+
+    started = time.monotonic()
+    node = procs.start(["rosrun", "robotics_test", "talker.py", "__name:=floor_talker"], env=env, name="floor-talker")
+    wait_until(registered, timeout=20, interval=POLL, message="the floor's node to register")
+    node_s = time.monotonic() - started
+    procs.stop(node)
+    procs.stop(core)
+    procs.children.remove(node)
+    procs.children.remove(core)
+    return master_s, node_s
+
+
+# -- (a) time to pair --------------------------------------------------------------------------------------------
+
+def time_to_pair(plat, runs):
+    plat.provision_logic("bench_pair", sn_list=LOGIC)
+    plat.provision_robot("benchbot", "bench_pair")
+    robot = plat.robot("benchbot", "127.0.0.2")
+    times = []
+    for _ in range(runs):
+        started = time.monotonic()
+        robot.start(wait=False)
+        wait_until(lambda: plat.state("benchbot") == (True, True), timeout=60, interval=POLL,
+                   message="benchbot to pair")
+        times.append(time.monotonic() - started)
+        robot.stop()
+        plat.wait_state("benchbot", False, False)
+        _wait_gone(plat, {plat.master.process.pid})
+    return times
+
+
+# -- (b) memory per space ---------------------------------------------------------------------------------------
+
+def _children_map():
+    children = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            continue
+        children.setdefault(ppid, []).append(int(entry))
+    return children
+
+
+def tree(pid):
+    """``pid`` and all its descendants."""
+    children = _children_map()
+    found, todo = [], [pid]
+    while todo:
+        current = todo.pop()
+        found.append(current)
+        todo.extend(children.get(current, []))
+    return found
+
+
+def memory_kib(pids):
+    """(RSS, PSS) in KiB summed over ``pids`` (from /proc/PID/smaps_rollup)."""
+    rss = pss = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/smaps_rollup") as f:
+                for line in f:
+                    if line.startswith("Rss:"):
+                        rss += int(line.split()[1])
+                    elif line.startswith("Pss:"):
+                        pss += int(line.split()[1])
+        except OSError:
+            continue
+    return rss, pss
+
+
+INTERPRETERS = ("bash", "sh", "python3", "python", "setsid", "setpriv")
+
+
+def process_label(argv):
+    """A short name for a process: its program, or the script an interpreter runs (``rosrun`` is a bash script)."""
+    names = [os.path.basename(a) for a in argv if not a.startswith("-")]
+    for name in names:
+        if not (name in INTERPRETERS or name.startswith("python3")):
+            return f"{name} (bash script)" if name == "rosrun" else name
+    return names[0] if names else "?"
+
+
+def label_of(pid):
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            argv = f.read().split(b"\0")
+    except OSError:
+        return "?"
+    return process_label([a.decode("utf-8", "replace") for a in argv if a])
+
+
+def _losses(plat):
+    """The master's log lines about robots lost without saying bye (connection dropped or heartbeats missed)."""
+    return [line.split("rcmp.event: ", 1)[-1] for line in plat.master.log_text().splitlines() if "lost robot" in line]
+
+
+def many_robots(plat, count):
+    plat.provision_logic("bench_many", sn_list=LOGIC)
+    names = [f"simbot{n}" for n in range(1, count + 1)]
+    for name in names:
+        plat.provision_robot(name, "bench_many")
+    before_rss, before_pss = memory_kib(tree(plat.master.process.pid))
+    lost_before = len(_losses(plat))
+    started = time.monotonic()
+    for index, name in enumerate(names):
+        plat.robot(name, f"127.0.0.{index + 2}").start(wait=False)
+
+    def all_paired():
+        rows = plat.instances()
+        return all(rows[n]["connected"] and rows[n]["paired"] for n in names)
+
+    wait_until(all_paired, timeout=300, interval=0.05, message=f"all {count} robots to pair")
+    elapsed = time.monotonic() - started
+
+    def steady():
+        """The master's tree once it holds exactly one ROS master, rosout and S node per space and nothing else."""
+        pids = [p for p in tree(plat.master.process.pid) if p != plat.master.process.pid]
+        labels = [label_of(p) for p in pids]
+        wanted = {"rosmaster": count, "rosout": count, "talker.py": count}
+        counts = {k: labels.count(k) for k in wanted}
+        extra = [l for l in labels if l not in wanted and l != "rosrun (bash script)"]
+        return pids if counts == wanted and not extra else None
+
+    wait_until(steady, timeout=60, interval=0.1, message="the master's processes to settle")
+    pids = tree(plat.master.process.pid)
+    after_rss, after_pss = memory_kib(pids)
+    per_space = {"rss": (after_rss - before_rss) / count / 1024, "pss": (after_pss - before_pss) / count / 1024}
+    # what one space's processes are, by command
+    kinds = {}
+    for pid in pids:
+        if pid == plat.master.process.pid:
+            continue
+        kind = label_of(pid)
+        rss, pss = memory_kib([pid])
+        entry = kinds.setdefault(kind, [0, 0, 0])
+        entry[0] += 1
+        entry[1] += rss
+        entry[2] += pss
+    master_rss, master_pss = memory_kib([plat.master.process.pid])
+    lost = _losses(plat)[lost_before:]
+    for name in names:
+        plat.robots[name].stop()
+    return elapsed, lost, per_space, kinds, (before_rss, before_pss), (master_rss, master_pss)
+
+
+# -- main -------------------------------------------------------------------------------------------------------
+
+def _wait_gone(plat, keep):
+    """Wait until no process of the platform is left but those in ``keep``."""
+    wait_until(lambda: not [p for p in plat.leftovers() if p[0] not in keep], timeout=20,
+               message="the robot's processes to go")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=5, help="runs for (a) and for the floor (default 5)")
+    parser.add_argument("--robots", type=int, default=20, help="simulated robots for (b) (default 20)")
+    parser.add_argument("--heartbeat", type=float, default=2.0,
+                        help="heartbeat_interval of every agent (default 2.0, the platform's default)")
+    parser.add_argument("--work", metavar="DIR", help="keep the agents' folders and logs in DIR (default: a "
+                                                      "temporary folder, removed afterwards)")
+    parser.add_argument("--no-write", action="store_true", help="print, do not write docs/PERFORMANCE.md")
+    args = parser.parse_args(argv)
+
+    if args.work:
+        os.makedirs(args.work, exist_ok=True)
+    with (contextlib.nullcontext(args.work) if args.work
+          else tempfile.TemporaryDirectory(prefix="bench-lifecycle-")) as tmp:
+        procs = ProcessGroup(log_dir=tmp)
+        plat = Platform(procs, os.path.join(tmp, "platform"), heartbeat=args.heartbeat)
+        try:
+            floors = [floor_once(procs, tmp) for _ in range(args.runs)]
+            plat.master.start()
+            pair_times = time_to_pair(plat, args.runs)
+            elapsed, lost, per_space, kinds, before, master_mem = many_robots(plat, args.robots)
+            plat.master.stop()
+        finally:
+            try:
+                procs.stop_all()
+            finally:
+                plat.kill_leftovers()
+
+    master_p50 = statistics.median(m for m, _ in floors)
+    node_p50 = statistics.median(n for _, n in floors)
+    floor = master_p50 + node_p50
+    pair_p50 = statistics.median(pair_times)
+    ratio = pair_p50 / floor
+    ok_a = ratio <= TARGET_RATIO
+    ok_b = per_space["pss"] < TARGET_MB_PER_SPACE
+    rows = "\n".join(
+        f"| {kind} | {n} | {rss / n / 1024:.1f} | {pss / n / 1024:.1f} |" for kind, (n, rss, pss) in sorted(kinds.items()))
+    body = f"""
+Real agents on loopback (master 127.0.0.1, robots 127.0.0.2 ...), heartbeats every {args.heartbeat:g} s (3 misses),
+service logic: one S-side and
+one R-side `robotics_test/talker.py`. Service spaces run `rosmaster --core` plus `rosout` (rcmp_ms); an item
+counts as started once it stayed up for the process table's settle time (1 s), and pairing waits for it.
+
+### (a) Robot agent start to `paired: true` ({args.runs} runs)
+
+| measure | p50 | runs |
+| --- | --- | --- |
+| floor: bare `rosmaster --core` answers | {master_p50:.2f} s | {", ".join(f"{m:.2f}" for m, _ in floors)} |
+| floor: one `rosrun` node registered | {node_p50:.2f} s | {", ".join(f"{n:.2f}" for _, n in floors)} |
+| **floor (sum)** | **{floor:.2f} s** | |
+| **agent start → paired** | **{pair_p50:.2f} s** | {", ".join(f"{t:.2f}" for t in pair_times)} |
+
+Ratio to the floor: **{ratio:.2f}x** (target ≤ {TARGET_RATIO}x): {"met" if ok_a else "NOT met"}.
+The pairing time includes the agent's own start (Python and Twisted imports), hello, the space's ROS master and
+`rosout`, both nodes started in parallel, and the 1 s settle time, which alone is most of the gap to the floor.
+
+### (b) {args.robots} robots started together
+
+Time until all {args.robots} are paired: **{elapsed:.1f} s** (sessions lost and re-made on the way: {len(lost)}{": " + "; ".join(lost) if lost else ""}).
+
+Master-side memory per service space (master agent and everything it started, after minus before):
+RSS **{per_space["rss"]:.1f} MB**, PSS **{per_space["pss"]:.1f} MB** (target < {TARGET_MB_PER_SPACE:.0f} MB, judged on
+PSS, which divides shared library pages among the processes using them): {"met" if ok_b else "NOT met"}.
+The master agent itself: RSS {before[0] / 1024:.1f} MB before, {master_mem[0] / 1024:.1f} MB with {args.robots}
+robots.
+
+| process (master side) | count | RSS MB each | PSS MB each |
+| --- | --- | --- | --- |
+{rows}
+"""
+    print(body)
+    if not args.no_write:
+        write_section("lifecycle", "Robot lifecycle: time to pair and memory per service space", body)
+    return 0 if ok_a and ok_b else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
