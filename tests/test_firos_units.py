@@ -416,3 +416,28 @@ def test_sender_retries_a_broker_answering_500_and_keeps_the_newest(tmp_path):
     finally:
         sender.stop()
         server.close()
+
+
+@pytest.mark.parametrize("version", ["v1", "v2"])
+def test_a_forgotten_subscription_is_an_error_on_refresh_and_is_recreated(tmp_path, broker, version):
+    from include.ngsi_client import BrokerError
+    settings = _settings(tmp_path, broker.port, version=version)
+    client = NgsiClient(settings)
+    with pytest.raises(BrokerError):
+        client.refresh("5c57f0a2a5529b6dc9a4ab0e", 60, time.time())
+    settings.subscription_length, settings.subscription_refresh_delay = 60.0, 0.3
+    lost = []
+    subs = Subscriptions(NgsiClient(settings), settings, "http://127.0.0.1:9/firos", on_lost=lost.append)
+    subs.start()
+    try:
+        subs.set("bot", [])
+        first = wait_until(lambda: subs.ids().get("bot"), message="the subscription")
+        if version == "v2":
+            client.request("DELETE", f"/v2/subscriptions/{first}")
+        else:
+            client.request("POST", "/v1/unsubscribeContext", {"subscriptionId": first})
+        second = wait_until(lambda: subs.ids().get("bot") not in (None, first) and subs.ids()["bot"],
+                            timeout=5, message="a new subscription after the broker forgot the first")
+        assert second != first and lost == ["bot"]
+    finally:
+        subs.stop()

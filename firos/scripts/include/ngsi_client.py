@@ -240,6 +240,10 @@ def _q(text):
 def _raise_v1_error(answer):
     """NGSI v1 reports errors with HTTP 200 and an errorCode / statusCode inside the body."""
     error = answer.get("errorCode")
+    for wrapper in ("subscribeError", "orionError"):      # updateContextSubscription / parse errors
+        inner = answer.get(wrapper)
+        if isinstance(inner, dict):
+            error = inner.get("errorCode", inner)
     if isinstance(error, dict) and str(error.get("code", "200")) != "200":
         raise BrokerError(int(error.get("code", 400)) if str(error.get("code", "")).isdigit() else 400,
                           json.dumps(answer))
