@@ -766,6 +766,7 @@ class _SpaceHost:
     driver_timeout = 20.0        # seconds for rcm_driver's port to accept
     driver_goodbye_timeout = 3.0 # seconds to wait for e_removed after r_disconnection (with FIROS)
     robot_timeout = 30.0         # seconds for a robot to stop its items before we carry on
+    launcher_nodes_timeout = 15.0  # seconds for a launcher's nodes to register after it settled
 
     key_prefix = "ss"
 
@@ -868,6 +869,39 @@ class _SpaceHost:
                 self._spawn_item(space, item, env)
         yield defer.gatherResults([item.process.when_settled() for item in items if item.process],
                                   consumeErrors=True)
+        launchers = [i for i in items if i.kind == "launcher" and i.nodes and i.state == RUNNING]
+        if launchers and not space.cancelled:
+            yield defer.gatherResults([self._wait_for_launcher_nodes(space, i) for i in launchers],
+                                      consumeErrors=True)
+
+    @defer.inlineCallbacks
+    def _wait_for_launcher_nodes(self, space, item):
+        """A launcher is up when its process settled and every node it launches is known to the master:
+        roslaunch keeps running when one of its nodes cannot start, so its liveness alone proves nothing."""
+        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+        deadline = self.reactor.seconds() + self.launcher_nodes_timeout
+        missing = list(item.nodes)
+        while missing:
+            if space.cancelled or item.state != RUNNING:
+                return
+            still = []
+            for name in missing:
+                try:
+                    code, _, _ = yield proxy.callRemote("lookupNode", "/rcmp_ms", "/" + name)
+                except Exception:
+                    code = 0
+                if code != 1:
+                    still.append(name)
+            missing = still
+            if not missing:
+                return
+            if self.reactor.seconds() > deadline:
+                output = item.process.useful_output() if item.process else ""
+                item.fail(f"node(s) {', '.join(missing)} of launcher {item.name} did not register with the "
+                          f"ROS master within {self.launcher_nodes_timeout:g} s"
+                          + (f": {output}" if output else ""))
+                return
+            yield task.deferLater(self.reactor, 0.1, lambda: None)
 
     @defer.inlineCallbacks
     def _prepare(self, space, item):
