@@ -442,3 +442,28 @@ class RealProcessTests(unittest.TestCase):
             self.assertEqual(mp.state, FAILED)
             self.assertIn("ghost-binary", mp.error)
         return d.addCallback(check)
+
+
+AGENT = """
+import os, sys
+from twisted.internet import reactor
+from rcm_platform.rcmp_ms import ProcessTable
+table = ProcessTable(reactor, sys.argv[1])
+def start():
+    child = table.spawn("sleeper", [sys.executable, "-c", "import time; time.sleep(120)"], dict(os.environ), "s")
+    print(child.pid, flush=True)
+reactor.callWhenRunning(start)
+reactor.run()
+"""
+
+
+def test_children_die_with_a_killed_agent(procs, tmp_path):
+    """--pdeathsig: SIGKILL the agent and its children get SIGTERM from the kernel; nothing is left."""
+    from tests.support.polling import wait_until
+    env = dict(os.environ, PYTHONPATH=os.getcwd() + ":" + os.environ.get("PYTHONPATH", ""))
+    agent = procs.start(["/usr/bin/python3", "-c", AGENT, str(tmp_path / "agent-log")], env=env, name="agent")
+    child_pid = int(wait_until(lambda: procs.output(agent).strip().splitlines()[0], timeout=20,
+                               message="the agent to start its child"))
+    assert group_alive(child_pid)
+    os.kill(agent.pid, signal.SIGKILL)
+    wait_until(lambda: not group_alive(child_pid), timeout=10, message="the orphaned child to die")
