@@ -107,6 +107,12 @@ def _platform_address(config):
         return None
 
 
+def _default_master_address(own_address):
+    """The master's address when ``ip_master`` is not set: the agent's own with the last octet 1."""
+    from rcm_platform import rcmp_node
+    return rcmp_node.master_address_from(own_address)
+
+
 # ------------------------------------------------------------------------------------------------------------
 # master side
 
@@ -418,9 +424,10 @@ class RobotAgent(service.Service):
                           self.config.vpn_interface)
             self._schedule(ADDRESS_POLL)
             return
-        master = f"{self.config.ip_master}:{self.config.ic_port}"
+        ip_master = self.config.ip_master or _default_master_address(self.address)
+        master = f"{ip_master}:{self.config.ic_port}"
         try:
-            peer = yield ic.connect(self.reactor, self.config.ip_master, self.config.ic_port, self,
+            peer = yield ic.connect(self.reactor, ip_master, self.config.ic_port, self,
                                     timeout=5.0, bind_address=self.address)
         except Exception as exc:
             self._problem("master %s unreachable (%s); retrying", master, exc)

@@ -335,3 +335,33 @@ class ValidateTests(unittest.TestCase):
             text = f.read()
         for op in rcmp_event.OPS:
             self.assertIn(f"### `{op}`", text)
+
+
+class AddressTests(unittest.TestCase):
+    """A robot waits for its platform address, then connects (to .1 of its network when ip_master is unset)."""
+
+    @defer.inlineCallbacks
+    def test_robot_waits_for_its_address_then_connects(self):
+        address = {"now": None}
+        self.patch(rcmp_event, "_platform_address", lambda cfg: address["now"])
+        self.patch(rcmp_event, "ADDRESS_POLL", 0.05)
+        port = free_port()
+        data = Data(provisioned={"robot1"})
+        master = rcmp_event.MasterAgent(config("master", "127.0.0.1", port), data, None, reactor, "127.0.0.1",
+                                        spaces=Spaces())
+        master.address = "127.0.0.1"                   # the master's own address is known
+        master.startService()
+        self.addCleanup(master.stopService)
+        robot_config = config("robot1", None, port, role="robot")
+        robot_config.ip_master = None                  # derived from the address once it exists
+        log = Logged()
+        logging.getLogger("rcmp").addHandler(log)
+        self.addCleanup(logging.getLogger("rcmp").removeHandler, log)
+        robot = rcmp_event.RobotAgent(robot_config, None, reactor, runner=Runner())
+        robot.startService()
+        self.addCleanup(robot.stopService)
+        yield until(lambda: any("waiting for the platform address" in line for line in log.lines))
+        self.assertEqual(data.lookups, [])
+        address["now"] = "127.0.0.5"                   # the VPN comes up
+        yield until(lambda: "paired" in data.names("robot1"))
+        self.assertEqual(data.events[0], ("connected", "robot1", "127.0.0.5"))

@@ -278,3 +278,44 @@ def test_four_firos_robots_get_the_four_inbound_ports_and_a_fifth_waits(procs, t
             leftovers = plat.leftovers()
             plat.kill_leftovers()
         assert not leftovers, f"processes left behind: {leftovers}"
+
+
+def test_ss_side_r_puts_the_ros_master_on_the_robot(platform):
+    platform.master.start()
+    platform.provision_logic("head_on_robot", ss_side="R", sn_list=[node("brain", "S", "brain_chatter"),
+                                                                     node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "head_on_robot")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+    status, space = platform.space("robot1")
+    assert status == 200 and space["ros_master_uri"].startswith("http://127.0.0.2:")
+    wait_until(lambda: {"/brain_chatter", "/body_chatter"} <= published_topics(platform, "robot1"))
+    robot_side = [cmd for pid, cmd in platform.leftovers() if "rosmaster" in cmd and robot.home in
+                  open(f"/proc/{pid}/environ", "rb").read().decode("utf-8", "replace")]
+    assert robot_side, "the space's ROS master runs on the robot's side"
+    # the master goes: the robot stops its items and its ROS master
+    platform.master.kill()
+    wait_until(lambda: not [p for p in platform.leftovers() if p[0] != robot.process.pid], timeout=15,
+               message="the robot's ROS master and items to stop")
+    finish(platform)
+
+
+def test_a_server_vm_agent_connects_and_pairs_like_a_robot(platform):
+    platform.master.start()
+    platform.provision_logic("vm_logic", sn_list=[node("vm_worker", "R", "vm_chatter")])
+    platform.provision_robot("vm1", "vm_logic")
+    vm = platform.robot("vm1", "127.0.0.4", role="server").start()
+    platform.wait_state("vm1", True, True)
+    wait_until(lambda: "/vm_chatter" in published_topics(platform, "vm1"))
+    assert "as vm1 (127.0.0.4)" in vm.log_text()
+    finish(platform)
+
+
+def test_robot_started_before_the_master_retries_until_it_is_up(platform):
+    robot = platform.robot("early", "127.0.0.3").start()
+    wait_until(lambda: "unreachable" in robot.log_text(), message="the robot to report the master unreachable")
+    platform.master.start()
+    platform.provision_logic("one_node", sn_list=[node("brain", "S", "brain_chatter")])
+    platform.provision_robot("early", "one_node")
+    platform.wait_state("early", True, True, timeout=20)     # backoff is capped at 5 s
+    finish(platform)

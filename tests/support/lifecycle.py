@@ -67,13 +67,13 @@ class Platform:
     def _env(home):
         return {"ROS_LOG_DIR": os.path.join(home, "roslog")}
 
-    def robot(self, name, address, **keys):
-        """A robot agent (not started) named ``name`` on platform address ``address``."""
+    def robot(self, name, address, role="robot", **keys):
+        """A robot (or, role "server", server VM) agent, not started, named ``name`` at ``address``."""
         home = os.path.join(self.root, name)
         settings = {"name": name, "vpn_address": address, "ip_master": "127.0.0.1",
                     "ic_port": self.master.ic_port, "heartbeat_interval": self.heartbeat, "heartbeat_misses": 3}
         settings.update(keys)
-        agent = RcmpAgent(self.procs, home, role="robot", env=self._env(home), **settings)
+        agent = RcmpAgent(self.procs, home, role=role, env=self._env(home), **settings)
         self.robots[name] = agent
         return agent
 
