@@ -99,8 +99,8 @@ class Rdapi(resource.Resource):
             route = self.routes.get(path)
             if route is None:
                 raise NotFound(f"unknown path {path!r}: see the RDAPI documentation for the calls")
-            request.setHeader(b"Allow", ", ".join(route.allowed).encode())
             if method == "OPTIONS":
+                request.setHeader(b"Allow", ", ".join(route.allowed).encode())
                 request.setResponseCode(204)
                 return b""
             handler_method = "GET" if method == "HEAD" else method

@@ -22,6 +22,7 @@ import ipaddress
 import logging
 import logging.handlers
 import os
+import signal
 import socket
 import sys
 
@@ -427,6 +428,9 @@ def main(argv=None):
             return top.stopService()
         return None
 
+    # a shell starting us in the background leaves SIGINT ignored; CONTRACTS §1 says SIGINT stops the agent, so
+    # give it the default handler, which Twisted then replaces with its own (stop the reactor)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     reactor.callWhenRunning(start)
     reactor.addSystemEventTrigger("before", "shutdown", stop)
     reactor.run()

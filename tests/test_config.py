@@ -200,6 +200,18 @@ def test_sigint_and_sigterm_exit_0_and_log(procs, tmp_path):
     assert "rcmp_n started as master 'master'" in text and text.rstrip().endswith("rcmp_n stopped")
 
 
+def test_sigint_stops_an_agent_started_with_sigint_ignored(procs, tmp_path):
+    """A shell's background job starts with SIGINT ignored; the agent still stops on it (CONTRACTS §1)."""
+    master = RcmpAgent(procs, tmp_path / "m")
+    master.process = procs.start(master.argv(), env=master.env(), name="rcmp-master", cwd=REPO,
+                                 preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    master._log_size = 0
+    master.wait_ready()
+    master.process.send_signal(signal.SIGINT)
+    wait_until(lambda: master.process.poll() is not None, timeout=20, message="exit on SIGINT")
+    assert master.process.returncode == 0
+
+
 def test_log_rotates_and_keeps_five(procs, tmp_path):
     master = RcmpAgent(procs, tmp_path / "m", log_max_bytes=1024).start()
     log_dir = os.path.join(master.home, "log")
