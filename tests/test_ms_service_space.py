@@ -160,8 +160,14 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(described["ros_master_uri"], uri)
         self.assertEqual(described["r_launchers"], [])
 
+        order = []
+        for managed in self.master_table.processes() + self.robot_table.processes():
+            managed.listeners.append(lambda m, old, new: order.append((m.key, new)))
         yield self.manager.teardown("robot1")
         self.assertEqual(self.robot.calls[-1], ("stop_items", "robot1"))
+        # R items on the robot, then S items, then rosout, then the ROS master; each gone before the next
+        self.assertEqual([key for key, state in order if state == "exited"], [
+            "robot/robot1/node/r_talker", "ss/robot1/node/s_talker", "ss/robot1/rosout", "ss/robot1/rosmaster"])
         self.assertEqual(self.states, [("robot1", True), ("robot1", False)])
         self.assertIsNone(self.manager.describe("robot1"))
         self.assertEqual(processes_with_env("ROS_LOG_DIR", self.tmp), [])
