@@ -87,6 +87,11 @@ class RcmpAgent:
         except OSError:
             return ""
 
+    def wait_log(self, text, timeout=20.0):
+        """Wait until ``text`` appears in rcmp.log (anywhere, this run or a previous one) and return the log."""
+        return wait_until(lambda: text in self.log_text() and self.log_text(), timeout=timeout,
+                          message=f"{text!r} in {self.log_path}")
+
     # -- life ---------------------------------------------------------------------------------------------
     def argv(self):
         return [PYTHON, "-m", "rcm_platform", "--home", self.home] + self.args
