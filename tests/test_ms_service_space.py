@@ -3,6 +3,7 @@ reached through a RemoteRobot that calls it directly), real rosmaster, real rosr
 test package robotics_test, the real rcm_driver and FIROS. Each test checks that nothing it started is left."""
 
 import os
+import random
 import shutil
 import signal
 import subprocess
@@ -15,11 +16,23 @@ from twisted.trial import unittest
 
 from rcm_platform import rcmp_ms
 from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
-from tests.support.ports import free_port, free_ports, port_accepts
+from tests.support.ports import free_port, port_accepts
 from tests.support.processes import ros_env
 
 MASTER_IP = "127.0.0.1"
 ROBOT_IP = "127.0.0.2"   # the robot's agent and its R items live on another loopback address
+
+
+def quiet_ports(count):
+    """Free ports below the ephemeral range (32768+), so no client connection of a busy machine takes one
+    between choosing and using it (the inbound ports must stay bindable for the whole test)."""
+    ports = []
+    for port in random.sample(range(20000, 32000), 400):
+        if rcmp_ms._tcp_port_free(port):
+            ports.append(port)
+            if len(ports) == count:
+                return ports
+    raise AssertionError("no free ports between 20000 and 32000")
 
 
 def node(name, side="S", package="robotics_test", node_type="talker.py", params=""):
@@ -79,7 +92,7 @@ class ServiceSpaceTests(unittest.TestCase):
         self.robot_table = ProcessTable(reactor, os.path.join(self.tmp, "robot-log"), settle_time=1.0,
                                         stop_timeouts=(3.0, 1.0))
         self.master_config = SimpleNamespace(role="master", name="master", vpn_address=MASTER_IP,
-                                             vpn_interface="lo", inbound_open_ports=free_ports(2),
+                                             vpn_interface="lo", inbound_open_ports=quiet_ports(2),
                                              ros_port_base=free_port())
         self.robot_config = SimpleNamespace(role="robot", name="robot1", vpn_address=ROBOT_IP,
                                             vpn_interface="lo", inbound_open_ports=[],
