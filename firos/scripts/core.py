@@ -116,7 +116,7 @@ def main(argv=None):
     subscriptions = Subscriptions(NgsiClient(settings), settings, url,
                                   on_lost=lambda r: holder["firos"].entity_lost(r))
     topics = TopicHandler(sender)
-    firos = Firos(settings, whitelist, descriptions, sender, subscriptions, topics, GraphReader("/firos"),
+    firos = Firos(settings, whitelist, descriptions, sender, subscriptions, topics, GraphReader(rospy.get_name()),
                   NgsiClient(settings))
     holder["firos"] = firos
     control = RosControl(firos)

@@ -39,8 +39,9 @@ def structure(msg_type, depth=0):
     return result
 
 
-def wait_for_subscribers(publisher, topic, timeout=1.0, master_uri=None, own_node="/firos"):
+def wait_for_subscribers(publisher, topic, timeout=1.0, master_uri=None, own_node=None):
     """Wait until ``publisher`` is connected to every subscriber the master lists for ``topic`` (or timeout)."""
+    own_node = own_node or rospy.get_name()
     try:
         _, subs, _ = rosgraph.Master(own_node, master_uri=master_uri).getSystemState()
         expected = len([n for t, nodes in subs if t == topic for n in nodes if n != own_node])
