@@ -150,6 +150,7 @@ def main(argv=None):
     sender.wait_idle(3.0)
     subscriptions.stop()
     sender.stop()
+    control.finish_events()
     rospy.signal_shutdown("FIROS stopped")
     return 0
 

@@ -2,8 +2,9 @@
 name on connect means every whitelisted robot), RCM's `/rcm/robot_event` (robotics_msgs/Robot_Event, with the
 robot's topics asked of `/rcm/firos_info`) and the `/firos/cb_event` (robotics_msgs/CB_Event) announcements.
 
-Owns those endpoints and one worker thread: callbacks only queue the request, the worker does the (blocking)
-service call and the connecting, so no ROS callback waits on the broker or on rcm_driver.
+Owns those endpoints and two worker threads: callbacks only queue the request, one worker does the (blocking)
+service call and the connecting, so no ROS callback waits on the broker or on rcm_driver; the other publishes the
+CB_Events (waiting for rcm_driver's connection first), so the sender thread that reports an entity never waits.
 """
 
 import json
@@ -30,7 +31,9 @@ class RosControl:
         self.firos = firos
         self.service_timeout = service_timeout
         self._queue = queue.Queue()
+        self._events = queue.Queue()
         self._thread = threading.Thread(target=self._run, name="firos-control", daemon=True)
+        self._event_thread = threading.Thread(target=self._run_events, name="firos-cb-events", daemon=True)
         self.cb_pub = None
         self._subs = []
 
@@ -42,8 +45,11 @@ class RosControl:
             rospy.Subscriber("/rcm/robot_event", Robot_Event, self._robot_event),
         ]
         self._thread.start()
+        self._event_thread.start()
 
     def stop(self):
+        """Stop taking requests; CB_Events still queued (and those of the shutdown) are published by
+        ``finish_events``."""
         self._queue.put(None)
         self._thread.join(5.0)
         for sub in self._subs:
@@ -66,11 +72,26 @@ class RosControl:
         self._publish_cb(name, CB_Event.REMOVED)
 
     def _publish_cb(self, name, status):
-        if self.cb_pub is None:
-            return
-        wait_for_subscribers(self.cb_pub, CB_EVENT_TOPIC, timeout=2.0)
-        self.cb_pub.publish(CB_Event(entity_name=name, entity_status=status))
-        log.info("CB_Event %s %s published", name, "CREATED" if status == CB_Event.CREATED else "REMOVED")
+        if self.cb_pub is not None:
+            self._events.put((name, status))
+
+    def finish_events(self, timeout=3.0):
+        """Publish what is queued, then stop the CB_Event thread."""
+        self._events.put(None)
+        self._event_thread.join(timeout)
+
+    def _run_events(self):
+        while True:
+            event = self._events.get()
+            if event is None:
+                return
+            name, status = event
+            try:
+                wait_for_subscribers(self.cb_pub, CB_EVENT_TOPIC, timeout=2.0)
+                self.cb_pub.publish(CB_Event(entity_name=name, entity_status=status))
+                log.info("CB_Event %s %s published", name, "CREATED" if status == CB_Event.CREATED else "REMOVED")
+            except Exception:  # rospy shutting down: nothing more can be announced
+                log.exception("cannot publish CB_Event for %s", name)
 
     def _run(self):
         while True:
