@@ -12,6 +12,7 @@ import json
 import logging
 
 from twisted.application import internet
+from twisted.internet import defer
 from twisted.web import resource, server
 
 from .rcmp_command import BadRequest, CommandError, MethodNotAllowed, NotFound, TooLarge
@@ -114,7 +115,7 @@ class Rdapi(resource.Resource):
                 request.setHeader(b"Content-Type", b"text/html; charset=utf-8")
                 return WELCOME
             body = self._body(request) if handler_method == "POST" else None
-            d = route.handlers[handler_method](query, body)
+            d = defer.maybeDeferred(route.handlers[handler_method], query, body)
         except CommandError as exc:
             return self._answer_error(request, exc)
         finished = []
@@ -146,7 +147,8 @@ class Rdapi(resource.Resource):
                           exc_info=(failure.type, failure.value, failure.getTracebackObject()))
                 self._write(request, 500, {"result": "ERROR",
                                            "reason": "internal error of the RCM master; see its log (rcmp.log)"})
-        d.addCallbacks(ok, error)
+        d.addCallback(ok)
+        d.addErrback(error)  # also catches a failure to encode an answer in ok()
         return server.NOT_DONE_YET
 
     @staticmethod
