@@ -336,7 +336,6 @@ def build_master(config, reactor):
     agent.setServiceParent(top)
     rdapi_service(site, config.ext_port, public_ip).setServiceParent(top)
     top.rdapi_address = (public_ip, config.ext_port)
-    top.data = data
     return top
 
 
@@ -352,6 +351,7 @@ def build_robot(config, reactor):
 
 
 def build_agent(config, reactor):
+    """The agent of ``config.role`` as one MultiService (not started yet); StartupError if it cannot be built."""
     return build_master(config, reactor) if config.role == "master" else build_robot(config, reactor)
 
 
