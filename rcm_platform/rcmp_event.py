@@ -174,26 +174,42 @@ class MasterAgent(service.Service):
         self._write = _OrderedWrites()
         self.listening = None
         self.address = None
+        self._address_call = None
 
     # -- service ----------------------------------------------------------------------------------------
     def startService(self):
+        """Listen on the platform address; raises CannotListenError at once when the port is taken."""
         super().startService()
-        self._starting = self._listen()
+        self.address = self.address or _platform_address(self.config)
+        if self.address is not None:
+            self._listen()
+        else:  # the VPN is not up yet: listen as soon as its address exists
+            log.warning("waiting for the platform address (interface %s has no IPv4 address yet)",
+                        self.config.vpn_interface)
+            self._address_call = self.reactor.callLater(ADDRESS_POLL, self._wait_for_address)
 
-    @defer.inlineCallbacks
-    def _listen(self):
-        while self.running and self.address is None:
-            self.address = _platform_address(self.config)
-            if self.address is None:
-                yield _sleep(self.reactor, ADDRESS_POLL)
+    def _wait_for_address(self):
+        self._address_call = None
         if not self.running:
             return
-        self.listening = yield ic.listen(self.reactor, self.address, self.config.ic_port, self)
+        self.address = _platform_address(self.config)
+        if self.address is None:
+            self._address_call = self.reactor.callLater(ADDRESS_POLL, self._wait_for_address)
+            return
+        try:
+            self._listen()
+        except Exception as exc:
+            log.error("cannot listen for robots: %s", exc)
+
+    def _listen(self):
+        self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self)
         log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
 
     @defer.inlineCallbacks
     def stopService(self):
         super().stopService()
+        if self._address_call is not None and self._address_call.active():
+            self._address_call.cancel()
         if self.listening is not None:
             yield self.listening.stopListening()
             self.listening = None
@@ -342,12 +358,6 @@ class MasterAgent(service.Service):
     def _locked(self, name, fn, *args, **kwargs):
         lock = self._locks.setdefault(name, defer.DeferredLock())
         return lock.run(fn, *args, **kwargs)
-
-
-def _sleep(clock, seconds):
-    d = defer.Deferred()
-    clock.callLater(seconds, d.callback, None)
-    return d
 
 
 # ------------------------------------------------------------------------------------------------------------

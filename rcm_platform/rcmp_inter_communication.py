@@ -263,9 +263,11 @@ class PeerFactory(protocol.Factory):
 
 
 def listen(reactor, address, port, handler):
-    """Listen on ``address:port``; the Deferred fires with the listening port (``stopListening()`` to stop)."""
-    endpoint = endpoints.TCP4ServerEndpoint(reactor, port, interface=address)
-    return endpoint.listen(PeerFactory(handler, reactor))
+    """Listen on ``address:port`` now; returns the listening port (``stopListening()`` to stop).
+
+    Raises ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.
+    """
+    return reactor.listenTCP(port, PeerFactory(handler, reactor), interface=address)
 
 
 def connect(reactor, host, port, handler, timeout=5.0, bind_address=None):

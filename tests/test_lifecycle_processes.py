@@ -319,3 +319,39 @@ def test_robot_started_before_the_master_retries_until_it_is_up(platform):
     platform.provision_robot("early", "one_node")
     platform.wait_state("early", True, True, timeout=20)     # backoff is capped at 5 s
     finish(platform)
+
+
+def test_an_r_item_dying_later_unpairs_the_robot_with_the_reason(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+    (body_pid,) = [pid for pid, cmd in platform.leftovers()
+                   if "talker.py" in cmd and "body_chatter" in cmd and not cmd.startswith("/bin/bash")
+                   and "bash" not in cmd.split()[0]]
+    os.kill(body_pid, signal.SIGKILL)
+    platform.wait_state("robot1", True, False, timeout=10)
+    status, space = platform.space("robot1")
+    body = next(n for n in space["r_nodes"] if n["sn_name"] == "body")
+    assert status == 200 and body["state"] == "failed" and body["i_name"] == "robot1"
+    assert robot.process.poll() is None
+    finish(platform)
+
+
+def test_master_whose_agent_port_is_taken_stops_with_one_clear_line(platform):
+    import socket
+    blocker = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    blocker.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    blocker.bind(("127.0.0.1", platform.master.ic_port))
+    blocker.listen(1)
+    try:
+        platform.master.start(wait=False)
+        wait_until(lambda: platform.master.process.poll() is not None, timeout=20,
+                   message="the master to give up")
+        assert platform.master.process.returncode != 0
+        assert str(platform.master.ic_port) in platform.master.output()
+        assert "Traceback" not in platform.master.output()
+    finally:
+        blocker.close()
