@@ -251,7 +251,19 @@ class MasterAgent(service.Service):
             return {}
         raise ic.Refused(f"the master agent does not serve op {op!r}", code="unknown_op")
 
+    def peer_connected(self, peer):
+        """A connection that has not said an accepted hello within HELLO_TIMEOUT is closed."""
+        peer.info["hello_call"] = self.reactor.callLater(HELLO_TIMEOUT, self._hello_overdue, peer)
+
+    def _hello_overdue(self, peer):
+        if peer.info.get("session") is None and not peer.closed:
+            log.warning("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_TIMEOUT)
+            peer.close("no hello in time")
+
     def peer_lost(self, peer, why):
+        call = peer.info.get("hello_call")
+        if call is not None and call.active():
+            call.cancel()
         session = peer.info.get("session")
         if session is None or session.ended:
             return

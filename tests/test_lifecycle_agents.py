@@ -365,3 +365,20 @@ class AddressTests(unittest.TestCase):
         address["now"] = "127.0.0.5"                   # the VPN comes up
         yield until(lambda: "paired" in data.names("robot1"))
         self.assertEqual(data.events[0], ("connected", "robot1", "127.0.0.5"))
+
+
+class HelloTimeoutTests(unittest.TestCase):
+
+    @defer.inlineCallbacks
+    def test_a_silent_connection_is_closed(self):
+        self.patch(rcmp_event, "HELLO_TIMEOUT", 0.2)
+        port = free_port()
+        master = rcmp_event.MasterAgent(config("master", "127.0.0.1", port), Data(), None, reactor, "127.0.0.1",
+                                        spaces=Spaces())
+        master.address = "127.0.0.1"
+        master.startService()
+        self.addCleanup(master.stopService)
+        handler = types.SimpleNamespace(request_received=lambda peer, op, body: {})
+        peer = yield ic.connect(reactor, "127.0.0.1", port, handler)
+        yield peer.request("heartbeat", {})           # answered, but it is no hello
+        yield until(lambda: peer.closed, timeout=3)
