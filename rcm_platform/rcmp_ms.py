@@ -50,7 +50,6 @@ from typing import Protocol
 from twisted.internet import defer, error as ierror, protocol, task, threads
 from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
 from twisted.protocols.basic import LineReceiver
-from twisted.python import failure
 from twisted.web import xmlrpc
 
 log = logging.getLogger(__name__)
@@ -851,6 +850,14 @@ class _SpaceHost:
                                      f"{self.master_timeout:g} s: {exc}")
             yield task.deferLater(self.reactor, 0.05, lambda: None)
 
+    @defer.inlineCallbacks
+    def _core_settled(self, space):
+        """Wait until the ROS master and rosout run here (usually long since); SpaceError if one failed."""
+        for managed in space.core_processes():
+            up = yield managed.when_settled()
+            if not up and not space.cancelled:
+                raise SpaceError(f"the space's {managed.key.rsplit('/', 1)[-1]} {managed.error}")
+
     def _core_changed(self, space, managed, new):
         if new == FAILED and not space.cancelled:
             space.reason = f"the space's {managed.key.rsplit('/', 1)[-1]} {managed.error}"
@@ -1028,6 +1035,7 @@ class ServiceSpaceManager(_SpaceHost):
                     yield self._start_local_items(space, [i for i in items if i.side == "S"])
             if not space.cancelled:
                 yield self._connect_drivers(space)
+            yield self._core_settled(space)
         except SpaceError as exc:
             space.reason = str(exc)
         except defer.FirstError as exc:
@@ -1302,6 +1310,7 @@ class RobotSideRunner(_SpaceHost):
                 raise SpaceError("no ROS master URI given and none started")
             if not space.cancelled:
                 yield self._start_local_items(space, parsed)
+            yield self._core_settled(space)
         except SpaceError as exc:
             space.reason = str(exc)
             for item in parsed:

@@ -187,6 +187,16 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertFalse(port_accepts(space.ros_master_port), "the ROS master still listens")
 
     @defer.inlineCallbacks
+    def test_an_empty_service_logic_pairs_once_the_ros_master_and_rosout_run(self):
+        space = yield self.manager.create("robot1", {"ss_side": "S", "sn_list": [], "sl_list": []}, self.robot)
+        self.assertTrue(space.paired, self.manager.describe("robot1"))
+        self.assertEqual(space.rosout.state, RUNNING)
+        self.assertEqual(self.robot.calls, [])  # nothing to ask the robot
+        described = self.manager.describe("robot1")
+        self.assertEqual((described["r_nodes"], described["r_launchers"]), ([], []))
+        yield self.manager.teardown("robot1")
+
+    @defer.inlineCallbacks
     def test_launcher_nodes_are_associated_and_stopped(self):
         logic = {"sn_list": [], "sl_list": [launcher("two", params="prefix:=xx"),
                                             launcher("rtwo", side="R", params="prefix:=rr")]}
@@ -391,3 +401,4 @@ def test_child_env_points_at_the_space():
     assert env["ROS_LOG_DIR"] == "/h/log/ros"
     assert env["ROS_PACKAGE_PATH"] == "/ws/src"
     assert "ROS_NAMESPACE" not in env
+
