@@ -3,7 +3,7 @@
 ROS topics (CONTRACTS §3). Run as `rosrun firos core.py [-P PORT] [--config DIR]`.
 
 This file only assembles the node: command line, configuration (one clear line and exit 1 when it is wrong),
-logging, the notification address, the parts in `include/`, the discovery loop in the main thread, and an
+logging (stderr, /rosout and the node's ROS log file), the notification address, the parts in `include/`, the discovery loop in the main thread, and an
 orderly shutdown (subscriptions and entities removed) on SIGINT/SIGTERM or a ROS shutdown.
 """
 
@@ -75,6 +75,15 @@ def setup_logging(level):
     log.propagate = False
 
 
+def route_logs_to_ros():
+    """After rospy.init_node: FIROS's log lines also go to /rosout (rqt_console, rosout.log) and to the node's
+    own log file under ROS_LOG_DIR, as the seed's "Diagnosis procedures" expect of service nodes."""
+    for handler in logging.getLogger("rosout").handlers:
+        if type(handler).__name__ == "RosOutHandler":
+            log.addHandler(handler)
+    log.propagate = True     # the root logger holds rospy's file handler for this node's log file
+
+
 def main(argv=None):
     import rospy
     argv = rospy.myargv(sys.argv if argv is None else argv)[1:]
@@ -106,6 +115,7 @@ def main(argv=None):
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     rospy.init_node("firos", anonymous=False, disable_signals=True)
+    route_logs_to_ros()
 
     url = f"http://{address}:{port}/firos"
     holder = {}
