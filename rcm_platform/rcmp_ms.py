@@ -111,6 +111,14 @@ class OsFacade:
         except ProcessLookupError:
             return False
 
+    def signal_child(self, pid, sig):
+        """Send ``sig`` to our own not yet reaped child ``pid`` (its pid cannot have been reused)."""
+        try:
+            os.kill(pid, sig)
+            return True
+        except ProcessLookupError:
+            return False
+
     def signal_process(self, pid, start_time, sig):
         """Send ``sig`` to ``pid`` if it is still the process that started at ``start_time``."""
         if not self.process_alive(pid, start_time):
@@ -385,7 +393,10 @@ class ManagedProcess:
         """Signal our group; from SIGTERM on also every remembered descendant (and its own group)."""
         os_ = self.table.os
         if not os_.signal_group(self.pid, sig):
-            log.debug("process %s: group %s already gone (%s)", self.key, self.pid, sig)
+            if not self._reaped_yet:  # forked but setsid has not run yet: our unreaped child, signal it alone
+                os_.signal_child(self.pid, sig)
+            else:
+                log.debug("process %s: group %s already gone (%s)", self.key, self.pid, sig)
         if sig == signal.SIGINT:
             return
         for pid, start_time in self._descendants.items():

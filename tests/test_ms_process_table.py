@@ -41,6 +41,10 @@ class RecordingOs:
         self.signals.append(("group", pgid, sig))
         return pgid in self.alive_groups
 
+    def signal_child(self, pid, sig):
+        self.signals.append(("child", pid, sig))
+        return True
+
     def signal_process(self, pid, start_time, sig):
         self.signals.append(("process", pid, sig))
         return self.alive_processes.get(pid) == start_time
@@ -253,6 +257,7 @@ def test_no_such_process_means_already_going(tmp_path):
     fake.alive_groups.discard(mp.pid)  # killpg will say "no such process"
     d = fired(table.stop("item"))
     assert mp.state == STOPPING
+    assert ("child", mp.pid, signal.SIGINT) in fake.signals  # not reaped yet: maybe before its setsid
     fake.end(mp, sig=signal.SIGINT)
     assert d == [None] and mp.state == EXITED
 
@@ -464,6 +469,6 @@ def test_children_die_with_a_killed_agent(procs, tmp_path):
     agent = procs.start(["/usr/bin/python3", "-c", AGENT, str(tmp_path / "agent-log")], env=env, name="agent")
     child_pid = int(wait_until(lambda: procs.output(agent).strip().splitlines()[0], timeout=20,
                                message="the agent to start its child"))
-    assert group_alive(child_pid)
+    wait_until(lambda: group_alive(child_pid), timeout=10, message="the child's own group (after setsid)")
     os.kill(agent.pid, signal.SIGKILL)
     wait_until(lambda: not group_alive(child_pid), timeout=10, message="the orphaned child to die")
