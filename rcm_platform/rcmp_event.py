@@ -277,14 +277,30 @@ class MasterAgent(service.Service):
     @defer.inlineCallbacks
     def _hello(self, peer, body):
         name, address = body["name"], body["address"]
-        if peer.info.get("session") is not None:
-            raise ic.Refused("hello was already accepted on this connection", code="bad_request")
+        if peer.info.get("session") is not None or peer.info.get("hello_pending"):
+            raise ic.Refused("hello was already said on this connection", code="bad_request")
+        if not self.running:
+            self._refuse_later(peer)
+            raise ic.Refused("the master is stopping", code="gone")
+        peer.info["hello_pending"] = True
+        try:
+            answer = yield self._accept(peer, name, address, body)
+        finally:
+            peer.info["hello_pending"] = False
+        return answer
+
+    @defer.inlineCallbacks
+    def _accept(self, peer, name, address, body):
         if body["version"] != VERSION:
             self._refuse_later(peer)
             raise ic.Refused(f"message version {body['version']} is not supported; the master speaks "
                              f"version {VERSION}", code="unsupported_version")
+        if name == self.config.name:
+            self._refuse_later(peer)
+            raise ic.Refused(f"{name!r} is the master's own name; give the robot another name",
+                             code="not_provisioned")
         pi = yield threads.deferToThread(self.data.platform_instance, name)
-        if pi is None or name == self.config.name:
+        if pi is None:
             log.info("refused hello from %s (%s): not provisioned", name, peer.remote)
             self._refuse_later(peer)
             raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "

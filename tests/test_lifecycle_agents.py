@@ -382,3 +382,42 @@ class HelloTimeoutTests(unittest.TestCase):
         peer = yield ic.connect(reactor, "127.0.0.1", port, handler)
         yield peer.request("heartbeat", {})           # answered, but it is no hello
         yield until(lambda: peer.closed, timeout=3)
+
+
+class HelloRulesTests(unittest.TestCase):
+
+    @defer.inlineCallbacks
+    def setUp(self):
+        self.port = free_port()
+        self.data = Data(provisioned={"robot1", "master"})
+        self.master = rcmp_event.MasterAgent(config("master", "127.0.0.1", self.port), self.data, None, reactor,
+                                             "127.0.0.1", spaces=Spaces())
+        self.master.address = "127.0.0.1"
+        self.master.startService()
+        self.addCleanup(lambda: self.master.running and self.master.stopService())
+        handler = types.SimpleNamespace(
+            request_received=lambda peer, op, body: {"ros_master_uri": body.get("ros_master_uri"), "items": []})
+        self.peer = yield ic.connect(reactor, "127.0.0.1", self.port, handler)
+        self.addCleanup(self.peer.abort, "test over")
+
+    def hello(self, name):
+        return self.peer.request("hello", {"name": name, "address": "127.0.0.1", "robot": True,
+                                           "version": rcmp_event.VERSION}, timeout=3)
+
+    @defer.inlineCallbacks
+    def test_the_masters_own_name_is_refused(self):
+        with self.assertRaises(ic.RemoteError) as caught:
+            yield self.hello("master")
+        self.assertIn("master's own name", caught.exception.reason)
+        yield until(lambda: self.peer.closed)
+        self.assertEqual(self.data.events, [])
+
+    @defer.inlineCallbacks
+    def test_two_hellos_on_one_connection(self):
+        first, second = self.hello("robot1"), self.hello("robot1")
+        with self.assertRaises(ic.RemoteError) as caught:
+            yield second
+        self.assertEqual(caught.exception.code, "bad_request")
+        answer = yield first
+        self.assertTrue(answer["accepted"])
+        self.assertEqual(self.master.connected_robots(), ["robot1"])
