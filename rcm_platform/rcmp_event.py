@@ -328,6 +328,8 @@ class MasterAgent(service.Service):
         peer.info["session"] = session
         self.sessions[name] = session
         yield self._write(self.data.set_connected, name, address)
+        # the robot beats only once it has our answer: count from now, not from its hello (the write may be slow)
+        peer.last_heard = max(peer.last_heard, self.reactor.seconds())
         session.watchdog.start()
         log.info("robot %s connected from %s", name, address)
         return session

@@ -4,7 +4,8 @@ Both ends of an agent-to-agent connection run one ``Watchdog`` each. Every ``int
 the peer was last heard from (any frame counts: answers to our beats, the peer's own beats, other requests);
 if the peer has been silent for ``misses * interval`` seconds it stops and calls ``on_gone(silent_seconds)``
 once; otherwise it sends one beat through ``send_beat()`` (a callable returning a Deferred, whose failure only
-means "not heard", never an error). Time comes from the ``clock`` (the reactor, or ``task.Clock`` in tests).
+means "not heard", never an error). A check that runs more than half an interval late means this agent itself
+was stalled: frames may be waiting unread, so the peer is judged at the next check instead. Time comes from the ``clock`` (the reactor, or ``task.Clock`` in tests).
 """
 
 import logging
@@ -31,6 +32,7 @@ class Watchdog:
         self.name = name
         self.gone = False
         self._loop = None
+        self._last_tick = None
 
     @property
     def limit(self):
@@ -46,6 +48,7 @@ class Watchdog:
             return
         self._loop = task.LoopingCall(self._tick)
         self._loop.clock = self.clock
+        self._last_tick = self.clock.seconds()
         self._loop.start(self.interval, now=False)
 
     def stop(self):
@@ -58,8 +61,15 @@ class Watchdog:
         return self.clock.seconds() - self.last_heard()
 
     def _tick(self):
+        now = self.clock.seconds()
+        late = now - self._last_tick - self.interval
+        self._last_tick = now
         silent = self.silent_for()
-        if silent >= self.limit:
+        if late > self.interval / 2:
+            # this agent itself was stalled (busy machine): frames the peer sent meanwhile may be waiting
+            # unread, so judge the peer at the next tick, after the reactor has read them
+            log.debug("heartbeat check for %s ran %.1f s late; not judging this time", self.name, late)
+        elif silent >= self.limit:
             self.stop()
             if not self.gone:
                 self.gone = True

@@ -92,3 +92,20 @@ class WatchdogTests(unittest.TestCase):
 
     def test_limit(self):
         self.assertEqual(self.dog.limit, 6.0)
+
+    def test_a_late_check_does_not_judge_then_the_next_one_does(self):
+        self.dog.start()
+        self.peer.answering = False
+        self.clock.advance(10.0)                     # this agent was stalled for 10 s: frames may be unread
+        self.assertEqual(self.gone, [])
+        self.assertEqual(len(self.peer.beats), 1)    # it still beats
+        self.clock.advance(2.0)                      # an on-time check after the stall judges
+        self.assertEqual(len(self.gone), 1)
+
+    def test_frames_read_after_a_stall_keep_the_peer(self):
+        self.dog.start()
+        self.peer.answering = False
+        self.clock.advance(10.0)
+        self.peer.heard = self.clock.seconds()       # the reactor read the peer's waiting frames
+        self.clock.advance(2.0)
+        self.assertEqual(self.gone, [])
