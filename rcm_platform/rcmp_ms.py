@@ -77,7 +77,7 @@ _ALLOWED_SOURCES = {
 SETSID = "/usr/bin/setsid"
 SETPRIV = "/usr/bin/setpriv"
 ROS_PATH_PREFIX = ["/usr/bin", "/bin", "/usr/sbin", "/sbin"]
-_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?")  # colours, terminal titles
 
 
 class InvalidTransition(RuntimeError):

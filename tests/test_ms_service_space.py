@@ -217,6 +217,39 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(processes_with_env("ROS_LOG_DIR", self.tmp), [])
 
     @defer.inlineCallbacks
+    def test_launcher_whose_node_cannot_start_is_failed_though_roslaunch_runs(self):
+        # a throwaway package, first on ROS_PACKAGE_PATH for us (roslaunch's loader) and for the children
+        pkg = os.path.join(self.tmp, "pkgs", "ms_bad_launch")
+        os.makedirs(os.path.join(pkg, "launch"))
+        with open(os.path.join(pkg, "package.xml"), "w") as f:
+            f.write('<?xml version="1.0"?><package format="2"><name>ms_bad_launch</name><version>0.0.1</version>'
+                    '<description>test</description><maintainer email="t@example.com">t</maintainer>'
+                    '<license>MIT</license><buildtool_depend>catkin</buildtool_depend></package>')
+        with open(os.path.join(pkg, "launch", "half.launch"), "w") as f:
+            f.write('<launch><node pkg="robotics_test" type="talker.py" name="good_half" />'
+                    '<node pkg="robotics_test" type="no_such_node.py" name="bad_half" /></launch>')
+        package_path = os.path.join(self.tmp, "pkgs") + ":" + os.environ.get("ROS_PACKAGE_PATH", "")
+        old = os.environ.get("ROS_PACKAGE_PATH")
+        os.environ["ROS_PACKAGE_PATH"] = package_path
+        self.addCleanup(lambda: os.environ.__setitem__("ROS_PACKAGE_PATH", old) if old is not None
+                        else os.environ.pop("ROS_PACKAGE_PATH", None))
+        self.env["ROS_PACKAGE_PATH"] = package_path
+        self.manager.launcher_nodes_timeout = 3.0
+        logic = {"sl_list": [launcher("half", package="ms_bad_launch", launch_file="half.launch")]}
+        space = yield self.manager.create("robot1", logic, None)
+        self.assertFalse(space.paired)
+        entry = self.manager.describe("robot1")["r_launchers"][0]
+        self.assertEqual(sorted(entry["associated_r_nodes"]), ["bad_half", "good_half"])
+        self.assertEqual(entry["state"], FAILED)
+        self.assertIn("bad_half", entry["error"])
+        self.assertNotIn("good_half,", entry["error"])
+        self.assertIn("cannot launch node of type [robotics_test/no_such_node.py]", entry["error"])
+        self.assertNotIn("\x1b", entry["error"])  # no colours or terminal titles
+        launcher_proc = self.master_table.get("ss/robot1/launcher/half")
+        self.assertEqual(launcher_proc.state, RUNNING)  # roslaunch itself carries on
+        yield self.manager.teardown("robot1")
+
+    @defer.inlineCallbacks
     def test_items_that_cannot_start_leave_the_space_unpaired_with_their_error(self):
         logic = {"sn_list": [node("good", params="_topic:=good"), node("ghost", package="no_such_pkg_x"),
                              node("crash", side="R", node_type="crasher.py")],
