@@ -368,6 +368,9 @@ def test_robot_installed_next_to_the_master_pairs_with_it(tmp_path, slot):
     status = service(robot_service, "status")
     assert (status.returncode, status.stdout.strip()) == (0, f"{robot_bin} is running")
     assert len(agent_processes((BIN, robot_bin))) == 2  # one process per agent
+    (robot_pid,) = agent_processes((robot_bin,))
+    # the robot imports its own rcm_platform (no RDAPI), not the master's in the system dist-packages
+    assert process_env(robot_pid)["PYTHONPATH"].split(":")[0] == str(robot_paths["lib"])
 
     def robot_row():
         rows = http_json(f"{base}/platform_instance/read")[1]["reason"]
