@@ -5,7 +5,7 @@ This module owns every child process an agent starts and the service spaces buil
 * ``ProcessTable`` / ``ManagedProcess``: one table per agent. Each child has one state from a closed set
   (``starting``, ``running``, ``stopping``, ``exited``, ``failed``) and changes state only through
   ``ManagedProcess._transition``, which checks the allowed source states and logs ``old -> new``. A child is
-  ``running`` only after staying up ``settle_time`` seconds; only the reaping path (``processEnded``) marks a
+  ``running`` only after staying up ``settle_time`` seconds; only the reaping path (``processExited``) marks a
   child ``exited`` (we stopped it) or ``failed`` (it ended without being asked).
 * Children never run through a shell. Each runs in its own session and process group: Twisted's
   ``spawnProcess`` has no ``setsid``, so argv is prefixed with ``/usr/bin/setsid`` (util-linux; the forked
@@ -227,8 +227,13 @@ class _ChildProtocol(protocol.ProcessProtocol):
 
     errReceived = outReceived
 
-    def processEnded(self, reason):
+    def processExited(self, reason):
+        # reaped. Not processEnded: that waits for every holder of the output pipes, and a grandchild
+        # (a roslaunch node, a daemonised helper) may hold them long after the child itself is gone.
         self.managed._reaped(reason)
+
+    def processEnded(self, reason):
+        self.managed._pipes_closed()
 
 
 class ManagedProcess:
@@ -325,8 +330,15 @@ class ManagedProcess:
         log.info("process %s started: pid %s, argv %s, log %s", self.key, self.pid, self.argv, self.log_path)
         self._settle_call = table.reactor.callLater(table.settle_time, self._settled)
 
+    def remember_descendants(self):
+        """Note the child's current descendants, so that they are stopped with it even if it dies first
+        (roslaunch's nodes live in sessions of their own and outlive a crashed roslaunch otherwise)."""
+        if self.pid is not None and not self._reaped_yet:
+            self._descendants.update(self.table.os.descendants(self.pid))
+
     def _settled(self):
         self._settle_call = None
+        self.remember_descendants()
         if self.state == STARTING:
             self._transition(RUNNING, f"up for {self.table.settle_time:g} s")
 
@@ -347,11 +359,8 @@ class ManagedProcess:
         if self._settle_call is not None and self._settle_call.active():
             self._settle_call.cancel()
         self._settle_call = None
-        if self._partial:
-            self._output(b"\n")
         if self._log is not None:
             self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} ended: {self._how_ended()}\n".encode())
-            self._log.close()
         if self.state == STOPPING:
             self._check_gone()
             return
@@ -360,8 +369,16 @@ class ManagedProcess:
         output = self.useful_output()
         self.error = f"{self._how_ended()} {when}" + (f": {output}" if output else " (no output)")
         self._transition(FAILED, self.error)
-        if self.table.os.group_alive(self.pid):  # the leader died, leave none of its group behind
+        if self._leftovers_alive():  # the leader died: leave none of its group or descendants behind
             self._sweep_leftovers()
+
+    def _pipes_closed(self):
+        """No process holds the child's output pipes any more: flush the last partial line, close the log."""
+        if self._partial:
+            self._output(b"\n")
+        if self._log is not None:
+            self._log.close()
+            self._log = None
 
     def _how_ended(self):
         if self.exit_signal is not None:
@@ -373,7 +390,7 @@ class ManagedProcess:
         d = defer.Deferred()
         if self.state in (STARTING, RUNNING):
             self._gone_waiters.append(d)
-            self._descendants.update(self.table.os.descendants(self.pid))
+            self.remember_descendants()
             self._transition(STOPPING, "stop requested")
             self._signal(signal.SIGINT)
             self._escalation = self.table.reactor.callLater(self.table.stop_timeouts[0], self._escalate,
@@ -381,10 +398,12 @@ class ManagedProcess:
             self._start_polling()
         elif self.state == STOPPING:
             self._gone_waiters.append(d)
+        elif self._poll is not None:      # already sweeping the leftovers of a failed child
+            self._gone_waiters.append(d)
+            self._check_gone()
         elif self._leftovers_alive():
             self._gone_waiters.append(d)
-            if self._poll is None:
-                self._sweep_leftovers()
+            self._sweep_leftovers()
         else:
             d.callback(None)
         return d
@@ -406,8 +425,7 @@ class ManagedProcess:
 
     def _escalate(self, sig):
         self._escalation = None
-        if not self._reaped_yet:
-            self._descendants.update(self.table.os.descendants(self.pid))
+        self.remember_descendants()
         if not self._leftovers_alive():
             self._check_gone()
             return
@@ -912,6 +930,7 @@ class _SpaceHost:
                     still.append(name)
             missing = still
             if not missing:
+                item.process.remember_descendants()  # its nodes now exist: they go wherever it goes
                 return
             if self.reactor.seconds() > deadline:
                 output = item.process.useful_output() if item.process else ""

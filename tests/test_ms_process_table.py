@@ -68,9 +68,11 @@ class RecordingOs:
             self.alive_groups.discard(managed.pid)
         proto = next(p for p, _, _ in self.spawned if p.managed is managed)
         if code == 0 and sig is None:
-            proto.processEnded(Failure(ierror.ProcessDone(0)))
+            reason = Failure(ierror.ProcessDone(0))
         else:
-            proto.processEnded(Failure(ierror.ProcessTerminated(code, sig)))
+            reason = Failure(ierror.ProcessTerminated(code, sig))
+        proto.processExited(reason)
+        proto.processEnded(reason)
 
     def sent(self, pid):
         return [s for kind, p, s in self.signals if p == pid and kind == "group"]
@@ -286,6 +288,22 @@ def test_failed_child_with_leftover_group_is_swept(tmp_path):
     assert d == [None] and mp.state == FAILED
 
 
+def test_descendants_of_a_child_that_dies_are_swept(tmp_path):
+    table, clock, fake = make_table(tmp_path)
+    mp = spawn(table)
+    fake.children[mp.pid] = {2002: 5}
+    fake.alive_processes[2002] = 5
+    clock.advance(1)                     # settled: its descendants are remembered
+    fake.end(mp, code=1)                 # dies unasked; its node in a session of its own lives on
+    assert mp.state == FAILED
+    assert ("process", 2002, signal.SIGTERM) in fake.signals
+    clock.advance(2)
+    assert ("process", 2002, signal.SIGKILL) in fake.signals
+    del fake.alive_processes[2002]
+    d = fired(table.stop("item"))
+    assert d == [None]
+
+
 def test_stop_of_unknown_or_finished_child_fires_at_once(tmp_path):
     table, clock, fake = make_table(tmp_path)
     assert fired(table.stop("nobody")) == [None]
@@ -436,6 +454,19 @@ class RealProcessTests(unittest.TestCase):
         self.assertEqual(mp.state, EXITED)
         for pid in grandchildren:
             self.assertFalse(group_alive(pid), "the grandchild in its own session survived")
+
+    @defer.inlineCallbacks
+    def test_descendant_of_a_crashed_child_is_swept(self):
+        code = SPAWN_GRANDCHILD.replace(
+            "print('ready', flush=True); time.sleep(60)", "print('ready', flush=True); time.sleep(0.8); sys.exit(1)")
+        mp = self.spawn("crashing-parent", code)
+        settled = yield mp.when_settled()
+        self.assertTrue(settled)
+        grandchildren = rcmp_ms.OsFacade(reactor).descendants(mp.pid)
+        self.assertEqual(len(grandchildren), 1)
+        self.pgids.extend(grandchildren)
+        yield self.wait_for(lambda: mp.state == FAILED)
+        yield self.wait_for(lambda: not any(group_alive(pid) for pid in grandchildren))
 
     def test_missing_executable_fails_with_the_reason(self):
         mp = self.table.spawn("ghost", ["/nonexistent/ghost-binary"], dict(os.environ), "ghost")
