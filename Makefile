@@ -8,7 +8,7 @@ WS := build/rcmp_ws
 OVERLAY := $(WS)/devel/setup.bash
 PYTEST_ARGS ?=
 
-.PHONY: help deps build test test-fast demo bench clean
+.PHONY: help deps build test test-fast demo bench dist clean
 
 help:
 	@echo "make demo   - start a master and a robot on this machine (loopback) and pair them"
@@ -16,6 +16,7 @@ help:
 	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
 	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
 	@echo "make bench  - run the benchmarks and write docs/PERFORMANCE.md"
+	@echo "make dist   - build every distribution zip into dist/ (create_robotics_pkg)"
 
 deps:
 	bash scripts/install-deps.sh
@@ -36,6 +37,9 @@ demo: deps build
 
 bench: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all
+
+dist:
+	for what in "" master robot firos rcm_driver robotics_msgs; do ./create_robotics_pkg $$what -o dist || exit 1; done
 
 clean:
 	rm -rf build
