@@ -130,43 +130,33 @@ def _check_fields(item, where, required, optional):
             raise BadRequest(f"{where} lacks the required field '{key}'")
 
 
-NODE_FIELDS = ("sn_package", "sn_type", "sn_name", "sn_params", "sn_side")
-LAUNCHER_FIELDS = ("sl_package", "sl_file_launcher", "sl_name", "sl_params", "sl_side")
+# The two kinds of service item: list field, field prefix, and the (field, pattern, what) of their ROS tokens.
+ITEM_KINDS = {
+    "sn_list": ("sn", (("sn_package", PACKAGE_RE, "package name"),
+                       ("sn_type", FILE_RE, "node type (executable name)"))),
+    "sl_list": ("sl", (("sl_package", PACKAGE_RE, "package name"),
+                       ("sl_file_launcher", FILE_RE, "launch file name"))),
+}
 
 
-def validate_service_node(item, index=0):
-    """Return a normalised service node dict (all five fields, params a string) or raise BadRequest."""
-    where = f"sn_list[{index}]"
-    _check_fields(item, where, ("sn_package", "sn_type", "sn_name", "sn_side"), ("sn_params",))
-    params = item.get("sn_params", "")
-    if params is None:
-        params = ""
-    split_params(params, f"{where}.sn_params")
-    return {
-        "sn_package": _validate_token(item["sn_package"], f"{where}.sn_package", PACKAGE_RE, "package name"),
-        "sn_type": _validate_token(item["sn_type"], f"{where}.sn_type", FILE_RE, "node type (executable name)"),
-        "sn_name": validate_name(item["sn_name"], f"{where}.sn_name"),
-        "sn_params": params,
-        "sn_side": validate_side(item["sn_side"], f"{where}.sn_side"),
-    }
+def validate_service_item(list_field, item, index=0):
+    """Return a normalised service node (``sn_list``) or launcher (``sl_list``) dict, or raise BadRequest.
 
-
-def validate_service_launcher(item, index=0):
-    """Return a normalised service launcher dict (all five fields, params a string) or raise BadRequest."""
-    where = f"sl_list[{index}]"
-    _check_fields(item, where, ("sl_package", "sl_file_launcher", "sl_name", "sl_side"), ("sl_params",))
-    params = item.get("sl_params", "")
-    if params is None:
-        params = ""
-    split_params(params, f"{where}.sl_params")
-    return {
-        "sl_package": _validate_token(item["sl_package"], f"{where}.sl_package", PACKAGE_RE, "package name"),
-        "sl_file_launcher": _validate_token(item["sl_file_launcher"], f"{where}.sl_file_launcher", FILE_RE,
-                                            "launch file name"),
-        "sl_name": validate_name(item["sl_name"], f"{where}.sl_name"),
-        "sl_params": params,
-        "sl_side": validate_side(item["sl_side"], f"{where}.sl_side"),
-    }
+    The result has all five fields of its kind, with params a string that splits as a shell would split it.
+    """
+    prefix, tokens = ITEM_KINDS[list_field]
+    where = f"{list_field}[{index}]"
+    name_field, params_field, side_field = f"{prefix}_name", f"{prefix}_params", f"{prefix}_side"
+    _check_fields(item, where, tuple(f for f, _, _ in tokens) + (name_field, side_field), (params_field,))
+    params = item.get(params_field)
+    params = "" if params is None else params
+    split_params(params, f"{where}.{params_field}")
+    result = {field: _validate_token(item[field], f"{where}.{field}", pattern, what)
+              for field, pattern, what in tokens}
+    result[name_field] = validate_name(item[name_field], f"{where}.{name_field}")
+    result[params_field] = params
+    result[side_field] = validate_side(item[side_field], f"{where}.{side_field}")
+    return result
 
 
 def _json_type(value):
@@ -202,7 +192,7 @@ def validate_service_logic(body):
     require_fields(body, ("slg_name",), ("sn_list", "sl_list", "ss_side"))
     slg_name = validate_name(body["slg_name"], "slg_name")
     lists = []
-    for field, check in (("sn_list", validate_service_node), ("sl_list", validate_service_launcher)):
+    for field in ("sn_list", "sl_list"):
         value = body.get(field)
         if value is None:
             value = []
@@ -210,7 +200,7 @@ def validate_service_logic(body):
             raise BadRequest(f"'{field}' must be a list, not {_json_type(value)}")
         if len(value) > MAX_ITEMS:
             raise BadRequest(f"'{field}' has more than {MAX_ITEMS} items")
-        lists.append([check(item, i) for i, item in enumerate(value)])
+        lists.append([validate_service_item(field, item, i) for i, item in enumerate(value)])
     sn_list, sl_list = lists
     ss_side = validate_side(body["ss_side"], "ss_side") if body.get("ss_side") is not None else "S"
     seen = set()
