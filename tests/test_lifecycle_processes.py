@@ -381,3 +381,25 @@ def test_a_frozen_robot_is_declared_gone_by_heartbeats_and_repairs_when_it_thaws
         os.kill(robot.process.pid, signal.SIGCONT)
     platform.wait_state("robot1", True, True, timeout=20)
     finish(platform)
+
+
+def test_a_frozen_master_makes_the_robot_stop_its_items_and_repair_after_thawing(platform):
+    platform.master.start()
+    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                    node("body", "R", "body_chatter")])
+    platform.provision_robot("robot1", "two_sides")
+    robot = platform.robot("robot1", "127.0.0.2").start()
+    platform.wait_state("robot1", True, True)
+    body = [pid for pid, cmd in platform.leftovers() if "body_chatter" in cmd]
+    assert body
+
+    os.kill(platform.master.process.pid, signal.SIGSTOP)
+    try:
+        wait_until(lambda: not [p for p in body if os.path.exists(f"/proc/{p}")], timeout=10,
+                   message="the robot to stop its R items when the master falls silent")
+        assert "no heartbeat from the master" in robot.log_text()
+    finally:
+        os.kill(platform.master.process.pid, signal.SIGCONT)
+    platform.wait_state("robot1", True, True, timeout=20)
+    wait_until(lambda: {"/brain_chatter", "/body_chatter"} <= published_topics(platform, "robot1"))
+    finish(platform)
