@@ -5,8 +5,9 @@ This module owns every child process an agent starts and the service spaces buil
 * ``ProcessTable`` / ``ManagedProcess``: one table per agent. Each child has one state from a closed set
   (``starting``, ``running``, ``stopping``, ``exited``, ``failed``) and changes state only through
   ``ManagedProcess._transition``, which checks the allowed source states and logs ``old -> new``. A child is
-  ``running`` only after staying up ``settle_time`` seconds; only the reaping path (``processExited``) marks a
-  child ``exited`` (we stopped it) or ``failed`` (it ended without being asked).
+  ``running`` once its owner has proof that it started (``confirm_running``: a ROS node registered with its
+  master, a master answered) or, failing that, after staying up ``settle_time`` seconds; only the reaping
+  path (``processExited``) marks a child ``exited`` (we stopped it) or ``failed`` (it ended unasked).
 * Children never run through a shell. Each runs in its own session and process group: Twisted's
   ``spawnProcess`` has no ``setsid``, so argv is prefixed with ``/usr/bin/setsid`` (util-linux; the forked
   child is not a group leader, so setsid calls setsid(2) and execs in place: same pid, and that pid is the
@@ -26,8 +27,11 @@ On top of the table, the service-space runtime (see docs/SERVICE_SPACES.md):
 
 * ``ServiceSpaceManager`` (master or server side): per connected robot a ``ServiceSpace``: a ROS master
   (``rosmaster --core`` plus ``rosout``, measured leaner and faster than ``roscore``) on a free port from
-  ``config.ros_port_base`` upward, the S-side items, and the R-side items through a ``RemoteRobot``;
-  ``paired`` when every item is running after the settle time. FIROS items get one of the inbound open
+  ``config.ros_port_base`` upward, the S-side items, and the R-side items through a ``RemoteRobot``, all
+  spawned at once (rospy nodes and ``roslaunch --wait`` wait for their master); ``paired`` when the ROS
+  master answers and every item has started: its node(s) registered with the space's master (a launcher:
+  every node it launches), or, for a node that never registers under its name, it stayed up for the settle
+  time. rosout is watched but not waited for (it only collects logs). FIROS items get one of the inbound open
   ports (``-P``); rcm_driver items get a free local ``port=N`` and are told ``r_connection`` /
   ``r_disconnection`` over a TCP connection kept open. ``describe`` renders ``service_space/read``.
 * ``RobotSideRunner`` (robot side): starts and stops the R-side items (and the ROS master when the service
@@ -52,6 +56,8 @@ from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
 from twisted.protocols.basic import LineReceiver
 from twisted.web import xmlrpc
 
+xmlrpc.QueryFactory.noisy = False  # one "Starting factory" log line per XML-RPC call to a ROS master is noise
+
 log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------------------------------------
@@ -68,7 +74,7 @@ LIVE_STATES = frozenset({STARTING, RUNNING, STOPPING})
 DONE_STATES = frozenset({EXITED, FAILED})
 
 _ALLOWED_SOURCES = {
-    RUNNING: frozenset({STARTING}),            # stayed up for the settle time
+    RUNNING: frozenset({STARTING}),            # proved it started (registered), or stayed up for the settle time
     STOPPING: frozenset({STARTING, RUNNING}),  # we asked it to stop
     EXITED: frozenset({STOPPING}),             # reaped after we asked (and its group is gone)
     FAILED: frozenset({STARTING, RUNNING}),    # reaped without being asked, or could not be spawned
@@ -341,6 +347,17 @@ class ManagedProcess:
         self.remember_descendants()
         if self.state == STARTING:
             self._transition(RUNNING, f"up for {self.table.settle_time:g} s")
+
+    def confirm_running(self, why):
+        """The caller has proof that the child started (a ROS node registered, a master answered): it is
+        running now, without waiting out the settle time. No effect unless it is still starting."""
+        if self.state != STARTING:
+            return
+        if self._settle_call is not None and self._settle_call.active():
+            self._settle_call.cancel()
+        self._settle_call = None
+        self.remember_descendants()
+        self._transition(RUNNING, why)
 
     def when_settled(self):
         """Deferred(bool): True once the child is running, False if it failed or was stopped before."""
@@ -620,6 +637,18 @@ def _platform_address(config):
     return address
 
 
+def _graph_name(name, params=""):
+    """The ROS graph name ``rosrun PKG TYPE PARAMS __name:=NAME`` registers under: ``/NAME``, or
+    ``/NS/NAME`` when the params hold ``__ns:=NS`` (unbalanced quotes: the plain name; spawning reports them)."""
+    try:
+        words = shlex.split(params or "")
+    except ValueError:
+        words = []
+    namespace = next((w.split(":=", 1)[1] for w in reversed(words) if w.startswith("__ns:=")), "")
+    namespace = namespace.strip("/")
+    return f"/{namespace}/{name}" if namespace else f"/{name}"
+
+
 class SpaceError(Exception):
     """Why a service space cannot be paired (a sentence shown in service_space/read as ``reason``)."""
 
@@ -751,6 +780,7 @@ class ServiceSpace:
         self.ros_master_uri = None
         self.ros_master_port = None
         self.master = None          # ManagedProcess of rosmaster, when the master runs here
+        self.core_env = None        # the environment of the space's rosmaster and rosout
         self.rosout = None
         self.items = []
         self.inbound_port = None
@@ -794,7 +824,9 @@ class _SpaceHost:
     driver_timeout = 20.0        # seconds for rcm_driver's port to accept
     driver_goodbye_timeout = 3.0 # seconds to wait for e_removed after r_disconnection (with FIROS)
     robot_timeout = 30.0         # seconds for a robot to stop its items before we carry on
-    launcher_nodes_timeout = 15.0  # seconds for a launcher's nodes to register after it settled
+    launcher_nodes_timeout = 15.0  # seconds for a launcher's nodes to register after it was spawned
+    registration_poll = 0.02       # seconds between two looks at the ROS master while items register
+    _roslaunch_imported = False    # launcher_nodes ran once on the reactor thread (see _prepare)
 
     key_prefix = "ss"
 
@@ -835,29 +867,83 @@ class _SpaceHost:
         raise SpaceError(f"no inbound open port left for FIROS: all of {used} are in use")
 
     # -- ROS master -----------------------------------------------------------------------------------------
-    @defer.inlineCallbacks
-    def _start_master(self, space, base):
+    def _spawn_master(self, space, base):
+        """Spawn the space's ROS master on a free port from ``base``; its URI is known at once, so items can
+        be started right away (rospy nodes and ``roslaunch --wait`` wait for their master themselves)."""
         port = self._choose_ros_port(base)
         space.ros_master_port = port
         space.ros_master_uri = f"http://{space.address}:{port}/"
-        env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
+        space.core_env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
         space.master = self.table.spawn(space.key("rosmaster"), ["rosmaster", "--core", "-p", str(port)],
-                                        env, f"{space.name}-rosmaster", core=True)
+                                        space.core_env, f"{space.name}-rosmaster", core=True)
+
+    @defer.inlineCallbacks
+    def _master_ready(self, space):
+        """Wait for the spawned ROS master to answer, give it ``/run_id`` as roscore does, start rosout, and
+        mark both running as soon as they prove it (the master answers, rosout registers)."""
         yield self._wait_for_master(space)
         if space.cancelled:
             return
+        space.master.confirm_running("answers on its XML-RPC port")
         # roscore sets /run_id; roslaunch --wait (launchers) waits for it and rosout names its log dir after it
-        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
-        try:
-            yield proxy.callRemote("setParam", "/rcmp_ms", "/run_id", str(uuid.uuid1()))
-        except Exception as exc:
-            raise SpaceError(f"the ROS master on {space.ros_master_uri} refused to set /run_id: {exc}")
+        yield self._call_master(space, "setParam", "/run_id", str(uuid.uuid1()), what="set /run_id")
         if space.cancelled:
             return
-        space.rosout = self.table.spawn(space.key("rosout"), ["rosrun", "rosout", "rosout"], env,
+        space.rosout = self.table.spawn(space.key("rosout"), ["rosrun", "rosout", "rosout"], space.core_env,
                                         f"{space.name}-rosout", core=True)
         space.rosout.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
         space.master.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
+        # rosout only collects logs: pairing does not wait for it to register (its failure still unpairs)
+        watching = self._confirm_when_registered(space, space.rosout, ["/rosout"])
+        watching.addErrback(lambda failure: log.error("service space %s: watching rosout: %s", space.name,
+                                                      failure.getTraceback()))
+
+    @defer.inlineCallbacks
+    def _call_master(self, space, method, *args, what):
+        """One XML-RPC call to the space's master, retried until ``master_timeout``: a machine saturated by
+        starting processes can make a single call time out although the master is fine."""
+        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+        deadline = self.reactor.seconds() + self.master_timeout
+        while True:
+            try:
+                result = yield proxy.callRemote(method, "/rcmp_ms", *args)
+                return result
+            except Exception as exc:
+                if space.cancelled:
+                    return None
+                if self.reactor.seconds() > deadline:
+                    raise SpaceError(f"the ROS master on {space.ros_master_uri} could not {what} within "
+                                     f"{self.master_timeout:g} s: {exc}")
+            yield task.deferLater(self.reactor, 0.1, lambda: None)
+
+    @defer.inlineCallbacks
+    def _confirm_when_registered(self, space, managed, names, deadline=None):
+        """Mark ``managed`` running as soon as every ROS node in ``names`` is registered with the space's
+        master. Fires with the names still missing when it stopped looking: [] once all registered; the
+        missing ones if the process ended, or (no ``deadline``) settled the slow way, or ``deadline`` passed."""
+        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+        missing = list(names)
+        while True:
+            if space.cancelled or managed.state not in (STARTING, RUNNING):
+                return missing
+            still = []
+            for name in missing:
+                try:
+                    code, _, _ = yield proxy.callRemote("lookupNode", "/rcmp_ms", name)
+                except Exception:
+                    code = 0
+                if code != 1:
+                    still.append(name)
+            missing = still
+            if not missing:
+                managed.confirm_running("registered with the ROS master")
+                managed.remember_descendants()  # its nodes now exist: they go wherever it goes
+                return []
+            if deadline is None and managed.state == RUNNING:
+                return missing
+            if deadline is not None and self.reactor.seconds() > deadline:
+                return missing
+            yield task.deferLater(self.reactor, self.registration_poll, lambda: None)
 
     @defer.inlineCallbacks
     def _wait_for_master(self, space):
@@ -881,11 +967,14 @@ class _SpaceHost:
 
     @defer.inlineCallbacks
     def _core_settled(self, space):
-        """Wait until the ROS master and rosout run here (usually long since); SpaceError if one failed."""
-        for managed in space.core_processes():
-            up = yield managed.when_settled()
+        """Wait until the ROS master runs here (usually long since) and check that rosout has not failed;
+        SpaceError if one did."""
+        if space.master is not None:
+            up = yield space.master.when_settled()
             if not up and not space.cancelled:
-                raise SpaceError(f"the space's {managed.key.rsplit('/', 1)[-1]} {managed.error}")
+                raise SpaceError(f"the space's rosmaster {space.master.error}")
+        if space.rosout is not None and space.rosout.state in DONE_STATES and not space.cancelled:
+            raise SpaceError(f"the space's rosout {space.rosout.error}")
 
     def _core_changed(self, space, managed, new):
         if new == FAILED and not space.cancelled:
@@ -895,7 +984,7 @@ class _SpaceHost:
     # -- local items ----------------------------------------------------------------------------------------
     @defer.inlineCallbacks
     def _start_local_items(self, space, items):
-        """Prepare (launcher node lists, ports), spawn every item, and wait until each settled or failed."""
+        """Prepare (launcher node lists, ports), spawn every item, and wait until each started or failed."""
         yield defer.gatherResults([self._prepare(space, item) for item in items], consumeErrors=True)
         if space.cancelled:
             return
@@ -903,42 +992,27 @@ class _SpaceHost:
         for item in items:
             if item.error is None:
                 self._spawn_item(space, item, env)
-        yield defer.gatherResults([item.process.when_settled() for item in items if item.process],
+        yield defer.gatherResults([self._item_started(space, item) for item in items if item.process],
                                   consumeErrors=True)
-        launchers = [i for i in items if i.kind == "launcher" and i.nodes and i.state == RUNNING]
-        if launchers and not space.cancelled:
-            yield defer.gatherResults([self._wait_for_launcher_nodes(space, i) for i in launchers],
-                                      consumeErrors=True)
 
     @defer.inlineCallbacks
-    def _wait_for_launcher_nodes(self, space, item):
-        """A launcher is up when its process settled and every node it launches is known to the master:
-        roslaunch keeps running when one of its nodes cannot start, so its liveness alone proves nothing."""
-        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+    def _item_started(self, space, item):
+        """An item has started when its ROS node(s) registered with the space's master (or, for a node that
+        never registers under its name, when it stayed up for the settle time). A launcher must see every node
+        it launches register: roslaunch keeps running when one of its nodes cannot start, so its liveness
+        alone proves nothing."""
+        if item.kind == "node":
+            yield self._confirm_when_registered(space, item.process, [_graph_name(item.name, item.params)])
+            yield item.process.when_settled()
+            return
         deadline = self.reactor.seconds() + self.launcher_nodes_timeout
-        missing = list(item.nodes)
-        while missing:
-            if space.cancelled or item.state != RUNNING:
-                return
-            still = []
-            for name in missing:
-                try:
-                    code, _, _ = yield proxy.callRemote("lookupNode", "/rcmp_ms", "/" + name)
-                except Exception:
-                    code = 0
-                if code != 1:
-                    still.append(name)
-            missing = still
-            if not missing:
-                item.process.remember_descendants()  # its nodes now exist: they go wherever it goes
-                return
-            if self.reactor.seconds() > deadline:
-                output = item.process.useful_output() if item.process else ""
-                item.fail(f"node(s) {', '.join(missing)} of launcher {item.name} did not register with the "
-                          f"ROS master within {self.launcher_nodes_timeout:g} s"
-                          + (f": {output}" if output else ""))
-                return
-            yield task.deferLater(self.reactor, 0.1, lambda: None)
+        names = ["/" + n.lstrip("/") for n in item.nodes]
+        missing = yield self._confirm_when_registered(space, item.process, names, deadline=deadline)
+        if missing and not space.cancelled and item.process.state in (STARTING, RUNNING):
+            output = item.process.useful_output()
+            item.fail(f"node(s) {', '.join(n.lstrip('/') for n in missing)} of launcher {item.name} did not "
+                      f"register with the ROS master within {self.launcher_nodes_timeout:g} s"
+                      + (f": {output}" if output else ""))
 
     @defer.inlineCallbacks
     def _prepare(self, space, item):
@@ -955,7 +1029,14 @@ class _SpaceHost:
                 item.driver_port = _free_local_port()
             return
         try:
-            nodes = yield threads.deferToThread(launcher_nodes, item.package, item.type_or_file, item.params)
+            if self._roslaunch_imported:
+                nodes = yield threads.deferToThread(launcher_nodes, item.package, item.type_or_file, item.params)
+            else:
+                # The first parse imports ~300 modules (roslaunch, rospkg, pkg_resources...). An import running
+                # in a thread while the reactor forks a child deadlocks CPython (os.fork takes the import and
+                # logging locks), so that first parse runs here, on the reactor thread, once per agent.
+                _SpaceHost._roslaunch_imported = True
+                nodes = launcher_nodes(item.package, item.type_or_file, item.params)
         except Exception as exc:  # roslaunch's RLException and its loader's errors: the message says why
             item.fail(f"roslaunch cannot load {item.package}/{item.type_or_file}: {exc}")
             return
@@ -1052,12 +1133,12 @@ class ServiceSpaceManager(_SpaceHost):
         try:
             space.address = self.address
             if ss_side == "S":
-                yield self._start_master(space, int(getattr(self.config, "ros_port_base", 11311)))
-                if not space.cancelled:
-                    work = [self._start_local_items(space, [i for i in items if i.side == "S"])]
-                    if remote:
-                        work.append(self._start_remote(space, robot, remote, None))
-                    yield defer.gatherResults(work, consumeErrors=True)
+                self._spawn_master(space, int(getattr(self.config, "ros_port_base", 11311)))
+                work = [self._master_ready(space),
+                        self._start_local_items(space, [i for i in items if i.side == "S"])]
+                if remote:
+                    work.append(self._start_remote(space, robot, remote, None))
+                yield defer.gatherResults(work, consumeErrors=True)
             else:
                 yield self._start_remote(space, robot, remote,
                                          int(getattr(self.config, "ros_port_base", 11311)))
@@ -1140,7 +1221,9 @@ class ServiceSpaceManager(_SpaceHost):
             return False
         if not space.ros_master_uri:
             return False
-        if any(p.state != RUNNING for p in space.core_processes()):
+        if space.master is not None and space.master.state != RUNNING:
+            return False
+        if space.rosout is not None and space.rosout.state not in (STARTING, RUNNING):
             return False
         return all(item.state == RUNNING for item in space.items)
 
@@ -1334,12 +1417,19 @@ class RobotSideRunner(_SpaceHost):
         self.spaces[ss_name] = space
         try:
             space.address = self.address
+            work = []
             if start_ros_master_port:
-                yield self._start_master(space, int(start_ros_master_port))
+                self._spawn_master(space, int(start_ros_master_port))
+                work.append(self._master_ready(space))
             if not space.ros_master_uri:
                 raise SpaceError("no ROS master URI given and none started")
-            if not space.cancelled:
-                yield self._start_local_items(space, parsed)
+            work.append(self._start_local_items(space, parsed))
+            try:
+                yield defer.gatherResults(work, consumeErrors=True)
+            except defer.FirstError as exc:
+                if isinstance(exc.subFailure.value, SpaceError):
+                    raise exc.subFailure.value
+                raise
             yield self._core_settled(space)
         except SpaceError as exc:
             space.reason = str(exc)

@@ -187,9 +187,13 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertFalse(port_accepts(space.ros_master_port), "the ROS master still listens")
 
     @defer.inlineCallbacks
-    def test_an_empty_service_logic_pairs_once_the_ros_master_and_rosout_run(self):
+    def test_an_empty_service_logic_pairs_once_the_ros_master_runs_and_rosout_follows(self):
         space = yield self.manager.create("robot1", {"ss_side": "S", "sn_list": [], "sl_list": []}, self.robot)
         self.assertTrue(space.paired, self.manager.describe("robot1"))
+        # pairing waits for the ROS master only; rosout (logs) registers on its own shortly after
+        deadline = reactor.seconds() + 10
+        while space.rosout.state != RUNNING and reactor.seconds() < deadline:
+            yield task.deferLater(reactor, 0.05, lambda: None)
         self.assertEqual(space.rosout.state, RUNNING)
         self.assertEqual(self.robot.calls, [])  # nothing to ask the robot
         described = self.manager.describe("robot1")
