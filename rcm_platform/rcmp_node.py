@@ -400,6 +400,7 @@ def main(argv=None):
         return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", 1)
 
     from twisted.internet import reactor
+    from twisted.internet.error import ReactorNotRunning
     try:
         top = build_agent(config, reactor)
     except StartupError as exc:
@@ -416,7 +417,10 @@ def main(argv=None):
             _log_to_file_only(f"cannot start: {message}")
             sys.stderr.write(f"{PROG}: cannot start the {config.role}: {message}\n")
             outcome["status"] = 1
-            reactor.stop()
+            try:
+                reactor.stop()
+            except ReactorNotRunning:  # a signal already began the shutdown
+                pass
             return
         where = getattr(top, "rdapi_address", None)
         rdapi = f", RDAPI on http://{where[0]}:{where[1]}/" if where else ""
