@@ -7,6 +7,7 @@ from twisted.internet import defer, reactor, task
 from twisted.trial import unittest
 
 from rcm_platform import rcmp_inter_communication as ic
+from tests.support.polling import until_deferred
 
 
 class Echo:
@@ -38,21 +39,7 @@ class Echo:
 
 
 def until(condition, timeout=5.0):
-    """A Deferred firing once ``condition()`` is true (polled on the reactor), failing after ``timeout``."""
-    d = defer.Deferred()
-    deadline = reactor.seconds() + timeout
-
-    def poll():
-        if condition():
-            loop.stop()
-            d.callback(True)
-        elif reactor.seconds() > deadline:
-            loop.stop()
-            d.errback(AssertionError(f"condition not met within {timeout} s"))
-
-    loop = task.LoopingCall(poll)
-    loop.start(0.01)
-    return d
+    return until_deferred(condition, timeout=timeout)
 
 
 class ProtocolTests(unittest.TestCase):

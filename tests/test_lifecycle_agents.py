@@ -16,23 +16,11 @@ from twisted.trial import unittest
 from rcm_platform import rcmp_event
 from rcm_platform import rcmp_inter_communication as ic
 from tests.support.ports import free_port
+from tests.support.polling import until_deferred
 
 
 def until(condition, timeout=8.0):
-    d = defer.Deferred()
-    deadline = reactor.seconds() + timeout
-
-    def poll():
-        if condition():
-            loop.stop()
-            d.callback(True)
-        elif reactor.seconds() > deadline:
-            loop.stop()
-            d.errback(AssertionError(f"condition {condition} not met within {timeout} s"))
-
-    loop = task.LoopingCall(poll)
-    loop.start(0.01)
-    return d
+    return until_deferred(condition, timeout=timeout)
 
 
 class Data:

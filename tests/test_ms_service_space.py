@@ -16,6 +16,7 @@ from twisted.trial import unittest
 
 from rcm_platform import rcmp_ms
 from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
+from tests.support.polling import until_deferred
 from tests.support.ports import free_port, port_accepts
 from tests.support.processes import ros_env
 
@@ -191,10 +192,7 @@ class ServiceSpaceTests(unittest.TestCase):
         space = yield self.manager.create("robot1", {"ss_side": "S", "sn_list": [], "sl_list": []}, self.robot)
         self.assertTrue(space.paired, self.manager.describe("robot1"))
         # pairing waits for the ROS master only; rosout (logs) registers on its own shortly after
-        deadline = reactor.seconds() + 10
-        while space.rosout.state != RUNNING and reactor.seconds() < deadline:
-            yield task.deferLater(reactor, 0.05, lambda: None)
-        self.assertEqual(space.rosout.state, RUNNING)
+        yield until_deferred(lambda: space.rosout.state == RUNNING, timeout=10, message="rosout to register")
         self.assertEqual(self.robot.calls, [])  # nothing to ask the robot
         described = self.manager.describe("robot1")
         self.assertEqual((described["r_nodes"], described["r_launchers"]), ([], []))

@@ -28,3 +28,27 @@ def wait_until(condition, timeout=10.0, interval=0.02, message=None):
             detail = f" (last error: {last_error!r})" if last_error else ""
             raise WaitTimeout(f"timed out after {timeout:.1f}s waiting for {what}{detail}")
         time.sleep(interval)  # the polling interval, not synchronisation
+
+
+def until_deferred(condition, timeout=5.0, interval=0.01, message=None, reactor=None):
+    """For Twisted tests: a Deferred firing with True once ``condition()`` is true, polled on the reactor
+    every ``interval`` seconds, and failing with WaitTimeout (naming ``message``) after ``timeout`` seconds."""
+    from twisted.internet import defer, task
+    if reactor is None:
+        from twisted.internet import reactor
+    d = defer.Deferred()
+    deadline = reactor.seconds() + timeout
+
+    def poll():
+        if condition():
+            loop.stop()
+            d.callback(True)
+        elif reactor.seconds() > deadline:
+            loop.stop()
+            what = message or getattr(condition, "__name__", repr(condition))
+            d.errback(WaitTimeout(f"timed out after {timeout:.1f}s waiting for {what}"))
+
+    loop = task.LoopingCall(poll)
+    loop.clock = reactor
+    loop.start(interval)
+    return d
