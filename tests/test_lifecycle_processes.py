@@ -46,6 +46,17 @@ def published_topics(plat, ss_name):
     return {name for name, _ in plat.ros_master(ss_name).getPublishedTopics("")}
 
 
+def pair_two_sided_robot(plat):
+    """Provision "two_sides" (talker "brain" on the S side, "body" on the R side) and robot1 with it, start robot1's
+    agent on 127.0.0.2 and wait until it is paired; returns the robot agent. The master must be running."""
+    plat.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
+                                                node("body", "R", "body_chatter")])
+    plat.provision_robot("robot1", "two_sides")
+    robot = plat.robot("robot1", "127.0.0.2").start()
+    plat.wait_state("robot1", True, True)
+    return robot
+
+
 def finish(plat):
     """Stop every agent (robots first) with SIGTERM, check each exited 0 and nothing of the platform is left."""
     for robot in plat.robots.values():
@@ -148,11 +159,7 @@ def test_robot_with_an_empty_service_logic_pairs(platform):
 
 def test_sigkill_robot_disconnects_it_and_leaves_nothing(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
     robot_home = robot.home
     assert any("body_chatter" in cmd for _, cmd in platform.leftovers())
 
@@ -170,11 +177,7 @@ def test_sigkill_robot_disconnects_it_and_leaves_nothing(platform):
 
 def test_sigkill_master_stops_robot_items_and_a_new_master_repairs(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
 
     platform.master.kill()
     wait_until(lambda: not [p for p in platform.leftovers() if p[0] != robot.process.pid],
@@ -188,11 +191,7 @@ def test_sigkill_master_stops_robot_items_and_a_new_master_repairs(platform):
 
 def test_r_provisioning_a_paired_robot_tears_its_space_down(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
 
     status, answer = platform.remove_robot("robot1")
     assert (status, answer["result"]) == (200, "OK")
@@ -323,11 +322,7 @@ def test_robot_started_before_the_master_retries_until_it_is_up(platform):
 
 def test_an_r_item_dying_later_unpairs_the_robot_with_the_reason(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
     (body_pid,) = [pid for pid, cmd in platform.leftovers()
                    if "talker.py" in cmd and "body_chatter" in cmd and not cmd.startswith("/bin/bash")
                    and "bash" not in cmd.split()[0]]
@@ -359,11 +354,7 @@ def test_master_whose_agent_port_is_taken_stops_with_one_clear_line(platform):
 
 def test_a_frozen_robot_is_declared_gone_by_heartbeats_and_repairs_when_it_thaws(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
     brain = [pid for pid, cmd in platform.leftovers() if "brain_chatter" in cmd]
     assert brain
 
@@ -385,11 +376,7 @@ def test_a_frozen_robot_is_declared_gone_by_heartbeats_and_repairs_when_it_thaws
 
 def test_a_frozen_master_makes_the_robot_stop_its_items_and_repair_after_thawing(platform):
     platform.master.start()
-    platform.provision_logic("two_sides", sn_list=[node("brain", "S", "brain_chatter"),
-                                                    node("body", "R", "body_chatter")])
-    platform.provision_robot("robot1", "two_sides")
-    robot = platform.robot("robot1", "127.0.0.2").start()
-    platform.wait_state("robot1", True, True)
+    robot = pair_two_sided_robot(platform)
     body = [pid for pid, cmd in platform.leftovers() if "body_chatter" in cmd]
     assert body
 
