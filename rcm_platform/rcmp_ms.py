@@ -637,6 +637,9 @@ def _platform_address(config):
     return address
 
 
+_PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
+
+
 def _graph_name(name, params=""):
     """The ROS graph name ``rosrun PKG TYPE PARAMS __name:=NAME`` registers under: ``/NAME``, or
     ``/NS/NAME`` when the params hold ``__ns:=NS`` (unbalanced quotes: the plain name; spawning reports them)."""
@@ -955,6 +958,11 @@ class _SpaceHost:
                 return
             if space.master.state not in (STARTING, RUNNING):
                 raise SpaceError(f"the ROS master on port {space.ros_master_port} {space.master.error}")
+            if _PORT_TAKEN in space.master.tail(20):
+                # rosmaster stays alive without its XML-RPC server when its port was taken between our check
+                # and its bind: say so now rather than after master_timeout
+                raise SpaceError(f"the ROS master could not listen on port {space.ros_master_port}: "
+                                 f"{space.master.useful_output(2)}")
             try:
                 yield proxy.callRemote("getPid", "/rcmp_ms")
                 log.info("service space %s: ROS master answers on %s", space.name, space.ros_master_uri)

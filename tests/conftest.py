@@ -1,6 +1,5 @@
 """Fixtures shared by the whole suite: owned child processes and a real ROS master on a free port."""
 
-import os
 
 import pytest
 

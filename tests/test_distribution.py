@@ -9,7 +9,6 @@ import io
 import os
 import stat
 import subprocess
-import sys
 import zipfile
 
 import pytest

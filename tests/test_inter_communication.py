@@ -3,7 +3,7 @@
 import json
 import struct
 
-from twisted.internet import defer, reactor, task
+from twisted.internet import defer, reactor
 from twisted.trial import unittest
 
 from rcm_platform import rcmp_inter_communication as ic

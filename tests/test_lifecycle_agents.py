@@ -10,7 +10,7 @@ import logging
 import threading
 import types
 
-from twisted.internet import defer, reactor, task
+from twisted.internet import defer, reactor
 from twisted.trial import unittest
 
 from rcm_platform import rcmp_event

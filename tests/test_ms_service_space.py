@@ -6,6 +6,7 @@ import os
 import random
 import shutil
 import signal
+import socket
 import subprocess
 import tempfile
 from types import SimpleNamespace
@@ -17,7 +18,7 @@ from twisted.trial import unittest
 from rcm_platform import rcmp_ms
 from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
 from tests.support.polling import until_deferred
-from tests.support.ports import free_port, port_accepts
+from tests.support.ports import port_accepts, ros_port_base
 from tests.support.processes import ros_env
 
 MASTER_IP = "127.0.0.1"
@@ -94,10 +95,10 @@ class ServiceSpaceTests(unittest.TestCase):
                                         stop_timeouts=(3.0, 1.0))
         self.master_config = SimpleNamespace(role="master", name="master", vpn_address=MASTER_IP,
                                              vpn_interface="lo", inbound_open_ports=quiet_ports(2),
-                                             ros_port_base=free_port())
+                                             ros_port_base=ros_port_base())
         self.robot_config = SimpleNamespace(role="robot", name="robot1", vpn_address=ROBOT_IP,
                                             vpn_interface="lo", inbound_open_ports=[],
-                                            ros_port_base=free_port())
+                                            ros_port_base=ros_port_base())
         self.exits = []
         self.states = []
         self.runner = RobotSideRunner(reactor, self.robot_table, self.robot_config, env=self.env,
@@ -332,6 +333,23 @@ class ServiceSpaceTests(unittest.TestCase):
         yield self.manager.teardown("robot1")
         self.assertTrue(port_accepts(second.ros_master_port))
         self.assertIsNotNone(self.manager.describe("robot2"))
+
+    @defer.inlineCallbacks
+    def test_a_ros_master_port_taken_after_it_was_chosen_fails_the_space_at_once_with_the_reason(self):
+        # the race: the port is free when chosen and taken (here: bound, not listening) before rosmaster binds it
+        holder = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.addCleanup(holder.close)
+        holder.bind(("127.0.0.1", 0))
+        taken = holder.getsockname()[1]
+        self.manager._choose_ros_port = lambda base: taken
+        started = reactor.seconds()
+        space = yield self.manager.create("robot1", {"sn_list": [node("s_talker")]}, None)
+        self.assertFalse(space.paired)
+        self.assertIn(f"could not listen on port {taken}", space.reason)
+        self.assertLess(reactor.seconds() - started, self.manager.master_timeout / 2)
+        self.assertIn("could not listen", self.manager.describe("robot1")["reason"])
+        yield self.manager.teardown("robot1")
+        self.assertEqual(processes_with_env("ROS_LOG_DIR", self.tmp), [])
 
     @defer.inlineCallbacks
     def test_bad_service_logic_is_refused_before_anything_starts(self):

@@ -1,7 +1,5 @@
 """The test support itself: a ROS master comes up on a free port and leaves nothing behind."""
 
-import os
-import signal
 
 import pytest
 

@@ -8,7 +8,6 @@ that no process of any group is left. Use it as a context manager or through the
 import os
 import signal
 import subprocess
-import time
 
 from .polling import wait_until
 

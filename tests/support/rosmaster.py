@@ -1,7 +1,5 @@
 """A real ROS master (Debian's ``rosmaster --core``, optionally with ``rosout``) on a free port, for tests."""
 
-import os
-import time
 
 import rosgraph
 
