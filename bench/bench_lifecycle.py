@@ -29,6 +29,7 @@ if ROOT not in sys.path:
 import rosgraph  # noqa: E402
 
 from bench.report import write_section  # noqa: E402
+from rcm_platform.rcmp_ms import OsFacade  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
 from tests.support.polling import WaitTimeout, wait_until  # noqa: E402
 from tests.support.ports import free_port  # noqa: E402
@@ -98,29 +99,9 @@ def time_to_pair(plat, runs):
 
 # -- (b) memory per space ---------------------------------------------------------------------------------------
 
-def _children_map():
-    children = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry}/stat") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        children.setdefault(ppid, []).append(int(entry))
-    return children
-
-
 def tree(pid):
-    """``pid`` and all its descendants."""
-    children = _children_map()
-    found, todo = [], [pid]
-    while todo:
-        current = todo.pop()
-        found.append(current)
-        todo.extend(children.get(current, []))
-    return found
+    """``pid`` and all its living descendants (the process table's own walk of /proc)."""
+    return [pid] + list(OsFacade(None).descendants(pid))
 
 
 def memory_kib(pids):

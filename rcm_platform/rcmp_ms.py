@@ -159,12 +159,12 @@ class OsFacade:
         children = collections.defaultdict(list)
         for child, info in table.items():
             children[info[1]].append(child)
-        found, todo = {}, [pid]
-        while todo:
-            for child in children.get(todo.pop(), ()):
+        found, pending = {}, [pid]
+        while pending:
+            for child in children.get(pending.pop(), ()):
                 if child not in found and table[child][0] != "Z":
                     found[child] = table[child][3]
-                    todo.append(child)
+                    pending.append(child)
         return found
 
 
