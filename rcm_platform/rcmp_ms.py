@@ -615,12 +615,6 @@ def _tcp_port_free(port, host=""):
             return False
 
 
-def _free_local_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
 def _platform_address(config):
     """This machine's platform address now: ``rcmp_node.platform_address(config)`` (vpn_address or the VPN
     interface's IPv4 address); SpaceError when there is none yet."""
@@ -637,6 +631,7 @@ def _platform_address(config):
     return address
 
 
+RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
 
 
@@ -858,6 +853,17 @@ class _SpaceHost:
                 return port
         raise SpaceError(f"no free port for a ROS master between {base} and {min(base + 999, 65535)}")
 
+    def _choose_driver_port(self):
+        """A local port for a space's rcm_driver: rcm_driver's default (9998) or the next free one above it.
+        Never a port-0 (ephemeral) port: any process's outgoing or port-0 socket can take one of those between
+        our check and the driver's bind, and the agent would then say r_connection to a stranger."""
+        taken = {i.driver_port for s in self.spaces.values() for i in s.items if i.driver_port}
+        taken.add(getattr(self.config, "ic_port", None))
+        for port in range(RCM_DRIVER_PORT, RCM_DRIVER_PORT + 1000):
+            if port not in taken and _tcp_port_free(port):
+                return port
+        raise SpaceError(f"no free local port for rcm_driver between {RCM_DRIVER_PORT} and {RCM_DRIVER_PORT + 999}")
+
     def _take_inbound_port(self, space):
         ports = list(getattr(self.config, "inbound_open_ports", None) or [])
         users = {s.inbound_port: s.name for s in self.spaces.values() if s.inbound_port}
@@ -1034,7 +1040,11 @@ class _SpaceHost:
                     item.fail(str(exc))
                     space.reason = str(exc)
             if item.is_rcm_driver:
-                item.driver_port = _free_local_port()
+                try:
+                    item.driver_port = self._choose_driver_port()
+                except SpaceError as exc:
+                    item.fail(str(exc))
+                    space.reason = str(exc)
             return
         try:
             if self._roslaunch_imported:

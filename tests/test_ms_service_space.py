@@ -404,6 +404,8 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertTrue(space.paired, self.manager.describe("robot1"))
         driver = [i for i in space.items if i.is_rcm_driver][0]
         self.assertIn(f"port={driver.driver_port}", driver.process.argv)
+        # rcm_driver's default port or the next free ones, never an ephemeral (port-0) one that a stranger can take
+        self.assertTrue(rcmp_ms.RCM_DRIVER_PORT <= driver.driver_port < 32768, driver.driver_port)
         self.assertIsNotNone(space.driver_link)
         env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
                    ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
