@@ -21,7 +21,7 @@ import zipfile
 import pytest
 
 from tests.support.polling import wait_until
-from tests.support.ports import free_ports
+from tests.support.ports import stable_free_ports
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PYTHON = "/usr/bin/python3"
@@ -241,7 +241,7 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     user = tmp_path / "user"
     user.mkdir()
     ws = user / "rcmp_ws"
-    ext_port, ic_port = free_ports(2)
+    ext_port, ic_port = stable_free_ports(2)
     install = [pkg / "install.sh", "--non-interactive", "--ext-address", "127.0.0.1", "--ext-port", ext_port,
                "--vpn-address", "127.0.0.1", "--ic-port", ic_port]
 
@@ -344,7 +344,7 @@ def test_robot_installed_next_to_the_master_pairs_with_it(tmp_path, slot):
     robot_pkg = build_zip(tmp_path / "r", "robot")
     user = tmp_path / "user"
     user.mkdir()
-    ext_port, ic_port, ros_port = free_ports(3)
+    ext_port, ic_port, ros_port = stable_free_ports(3)
 
     run([master_pkg / "install.sh", "-n", "--ext-address", "127.0.0.1", "--ext-port", ext_port,
          "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--ros-port-base", ros_port],
@@ -407,7 +407,7 @@ def test_rcmpd_reports_start_failures_stale_pid_files_and_double_starts(tmp_path
     pkg = build_zip(tmp_path / "m", "master")
     user = tmp_path / "user"
     user.mkdir()
-    ext_port, ic_port = free_ports(2)
+    ext_port, ic_port = stable_free_ports(2)
     run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--ext-address", "127.0.0.1",
          "--ext-port", ext_port, "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--home", places["home"],
          "--bin-dir", places["bin"], "--lib-dir", places["lib"], "--workspace", places["ws"],

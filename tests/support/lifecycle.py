@@ -14,7 +14,7 @@ import signal
 import rosgraph
 
 from .polling import wait_until
-from .ports import free_ports, ros_port_base
+from .ports import ros_port_base, stable_free_ports
 from .rcmp_agent import RcmpAgent
 
 HEARTBEAT = 0.5
@@ -55,7 +55,7 @@ class Platform:
         self.procs = procs
         self.root = str(root)
         self.heartbeat = heartbeat
-        self.inbound_ports = free_ports(inbound_ports) if inbound_ports else []
+        self.inbound_ports = stable_free_ports(inbound_ports) if inbound_ports else []
         keys = {"heartbeat_interval": heartbeat, "heartbeat_misses": 3, "ros_port_base": ros_port_base(),
                 "inbound_open_ports": ", ".join(str(p) for p in self.inbound_ports) or None}
         keys.update(master_keys)

@@ -33,22 +33,34 @@ def port_accepts(port, host="127.0.0.1", timeout=0.2):
         return False
 
 
-def ros_port_base(span=64, host="127.0.0.1"):
-    """A base for the ROS masters of service spaces: ``span`` consecutive free ports below the kernel's
-    ephemeral range. Ports inside that range can be taken by any process's outgoing or port-0 sockets between
-    the moment a port is found free and the moment rosmaster binds it, as 11311 (the product's default) cannot."""
-    import random
+def _ephemeral_low():
     try:
         with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
-            ephemeral_low = int(f.read().split()[0])
+            return int(f.read().split()[0])
     except (OSError, ValueError, IndexError):
-        ephemeral_low = 32768
+        return 32768
+
+
+def stable_free_ports(count, host="127.0.0.1"):
+    """``count`` distinct free ports below the kernel's ephemeral range, for servers that bind a port the test
+    chose for them some time later (a ROS master, rcm_driver, FIROS): a port inside that range can be taken
+    meanwhile by any process's outgoing or port-0 socket, as the product's defaults (11311, 9998, 10100) cannot."""
+    import random
     rng = random.Random()
-    for _ in range(200):
-        base = rng.randrange(20000, ephemeral_low - span)
-        if all(not port_accepts(port, host, timeout=0.05) and _bindable(port, host) for port in (base, base + 1)):
-            return base
-    raise RuntimeError(f"no free port base between 20000 and {ephemeral_low}")
+    chosen = []
+    for _ in range(400 * count):
+        port = rng.randrange(20000, _ephemeral_low() - 64)
+        if port not in chosen and not port_accepts(port, host, timeout=0.05) and _bindable(port, host):
+            chosen.append(port)
+            if len(chosen) == count:
+                return chosen
+    raise RuntimeError(f"no {count} free ports between 20000 and {_ephemeral_low()}")
+
+
+def ros_port_base(host="127.0.0.1"):
+    """A base for the ROS masters of service spaces (see stable_free_ports): the manager takes it or the next
+    free port above."""
+    return stable_free_ports(1, host)[0]
 
 
 def _bindable(port, host):

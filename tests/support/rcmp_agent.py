@@ -17,7 +17,7 @@ import os
 import signal
 
 from .polling import wait_until
-from .ports import free_ports
+from .ports import stable_free_ports
 from .processes import ros_env
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -37,7 +37,7 @@ class RcmpAgent:
         self.process = None
         os.makedirs(self.home, exist_ok=True)
         if role == "master":
-            ext_port, ic_port = free_ports(2)
+            ext_port, ic_port = stable_free_ports(2)
             defaults = {"vpn_address": "127.0.0.1", "ext_address": "127.0.0.1", "ext_port": ext_port,
                         "ic_port": ic_port}
         else:
