@@ -33,13 +33,7 @@ def platform(procs, tmp_path):
     try:
         yield plat
     finally:
-        # agents first (they stop what they started), then the safety net for anything left
-        try:
-            procs.stop_all()
-        finally:
-            leftovers = plat.leftovers()
-            plat.kill_leftovers()
-        assert not leftovers, f"processes left behind: {leftovers}"
+        plat.stop_all_and_check_nothing_left()
 
 
 def published_topics(plat, ss_name):
@@ -271,12 +265,7 @@ def test_four_firos_robots_get_the_four_inbound_ports_and_a_fifth_waits(procs, t
                    message="FIROS to remove robot1's entity")
         finish(plat)
     finally:
-        try:
-            procs.stop_all()
-        finally:
-            leftovers = plat.leftovers()
-            plat.kill_leftovers()
-        assert not leftovers, f"processes left behind: {leftovers}"
+        plat.stop_all_and_check_nothing_left()
 
 
 def test_ss_side_r_puts_the_ros_master_on_the_robot(platform):

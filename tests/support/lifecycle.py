@@ -127,6 +127,16 @@ class Platform:
     def leftovers(self):
         return processes_mentioning(self.root)
 
+    def stop_all_and_check_nothing_left(self):
+        """End of a test: stop every child of the test (agents first stop what they started), then kill and
+        report anything of the platform still running, so one test's leak never reaches the next."""
+        try:
+            self.procs.stop_all()
+        finally:
+            leftovers = self.leftovers()
+            self.kill_leftovers()
+        assert not leftovers, f"processes left behind: {leftovers}"
+
     def kill_leftovers(self):
         for pid, _ in self.leftovers():
             try:
