@@ -13,7 +13,7 @@ import pytest
 from tests.ngsi_broker.testing import start_broker
 from tests.support.firos import Firos, received, request, talker, v2_entity, wait_subscription, write_config
 from tests.support.polling import wait_until
-from tests.support.ports import free_port, port_accepts
+from tests.support.ports import port_accepts, stable_free_ports
 
 pytestmark = pytest.mark.slow   # real ROS master, broker and FIROS children
 
@@ -44,7 +44,7 @@ class AgentLine:
 def test_rcm_connection_creates_entity_and_e_created_comes_back(procs, ros_master, tmp_path):
     broker = start_broker(procs)
     config = write_config(str(tmp_path / "config"), broker.port)
-    driver_port = free_port()
+    (driver_port,) = stable_free_ports(1)
     procs.start(["/usr/bin/rosrun", "rcm", "rcm_driver.py", f"port={driver_port}"],
                 env=ros_master.env({"ROS_LOG_DIR": str(tmp_path / "roslog")}), name="rcm_driver")
     wait_until(lambda: port_accepts(driver_port), timeout=20, message="rcm_driver's TCP port")

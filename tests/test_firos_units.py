@@ -260,8 +260,8 @@ def _entity(settings, eid):
 
 @pytest.mark.parametrize("version", ["v1", "v2"])
 def test_sender_keeps_only_the_newest_value_while_the_broker_is_away(tmp_path, version):
-    from tests.support.ports import free_port
-    port = free_port()
+    from tests.support.ports import stable_free_ports
+    (port,) = stable_free_ports(1)
     settings = _settings(tmp_path, port, version=version)
     created = []
     sender = Sender(NgsiClient(settings), settings, on_created=created.append)

@@ -14,7 +14,7 @@ import socket
 import pytest
 
 from tests.support.polling import wait_until
-from tests.support.ports import free_port, port_accepts
+from tests.support.ports import port_accepts, stable_free_ports
 from tests.support.processes import ros_env
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -221,7 +221,7 @@ def env(ros_master, tmp_path):
 
 
 def start_driver(procs, env, port_arg=None):
-    port = free_port()
+    (port,) = stable_free_ports(1)
     arg = port_arg or "port="
     proc = procs.start(["/usr/bin/rosrun", "rcm", "rcm_driver.py", f"{arg}{port}"], env=env, name="rcm_driver")
     wait_until(lambda: "listening for RCM agents" in procs.output(proc) or proc.poll() is not None,

@@ -9,7 +9,7 @@ import os
 import yaml
 
 from .polling import wait_until
-from .ports import free_port
+from .ports import stable_free_ports
 
 SEED_WHITELIST = {
     "turtle\\w+": {"publisher": ["cmd_vel"], "subscriber": ["pose"]},
@@ -64,7 +64,7 @@ class Firos:
         self.procs = procs
         self.master = master
         self.config_dir = config_dir
-        self.port = port or free_port()
+        self.port = port or stable_free_ports(1)[0]
         self.name = name
         self.process = None
 
