@@ -1,5 +1,6 @@
-"""Fixtures shared by the whole suite: owned child processes and a real ROS master on a free port."""
+"""Fixtures shared by the whole suite: owned child processes, a real ROS master on a free port, test hosts."""
 
+import os
 
 import pytest
 
@@ -29,3 +30,16 @@ def ros_master(procs):
 def roscore(procs):
     """A ROS master plus ``rosout``, like ``roscore`` gives."""
     return RosMaster(procs, with_rosout=True).start()
+
+
+@pytest.fixture
+def lan(tmp_path):
+    """A LAN of test hosts (``tests/support/hosts.py``): ``lan.add_host(name)``; every namespace, process and
+    overlay is removed when the test ends, even on failure. Root only (the test is skipped otherwise)."""
+    if os.geteuid() != 0:
+        pytest.skip("test hosts need root (network namespaces)")
+    from tests.support.hosts import Lan
+    log_dir = tmp_path / "host-logs"
+    log_dir.mkdir()
+    with Lan(log_dir=str(log_dir)) as network:
+        yield network
