@@ -16,7 +16,8 @@ from .server import MAX_BODY, BrokerServer
 def parse_args(argv):
     parser = argparse.ArgumentParser(prog="python3 -m tests.ngsi_broker",
                                      description="Stand-in FIWARE Orion context broker for tests "
-                                                 "(NGSI v2 and the NGSI v1 of Orion before 3.10).")
+                                                 "(NGSI v2, the NGSI v1 of Orion before 3.10, NGSI-LD as "
+                                                 "Orion-LD).")
     parser.add_argument("--port", type=int, default=1026, help="TCP port (default 1026, 0 = any free port)")
     parser.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     parser.add_argument("--notify-timeout", type=float, default=2.0,

@@ -258,6 +258,8 @@ class Tenant:
         self.name = name
         self.entities = {}        # (service_path, id, type) -> Entity, in creation order
         self.subscriptions = {}   # id -> subscriptions.Subscription, in creation order
+        self.ld_entities = {}     # NGSI-LD entities apart (ngsild.LdEntity by id, in creation order)
+        self.ld_subscriptions = {}  # id -> ngsild.LdSubscription
 
     def find(self, entity_id, entity_type=None, query_paths=(("/", True),)):
         """Entities with this id (and type, when given) under the query's service paths."""

@@ -6,6 +6,7 @@ parameters, ``Fiware-Service`` → tenant, ``Fiware-ServicePath`` → write path
 answered with a ``Response``. A ``model.NgsiError`` becomes Orion's NGSI v2 ``{"error", "description"}`` under
 ``/v2`` and Orion's ``orionError`` (or ``subscribeError`` for the v1 subscription operations) under ``/v1`` and
 ``/NGSI10``. Unknown URLs get Orion's "Service not found" 400, wrong methods a 405 with ``Allow``.
+Paths under ``/ngsi-ld/`` go to ``ngsild.NgsiLd`` (same body limit and faults, ProblemDetails errors).
 ``/_standin/faults`` (not an Orion URL) lets a test make the next requests fail, to exercise its error paths.
 """
 
@@ -21,6 +22,7 @@ from urllib.parse import parse_qs, unquote, urlsplit
 
 from . import model
 from .model import NgsiError
+from .ngsild import LdProblem, NgsiLd, problem_response
 from .ngsiv1 import NgsiV1
 from .ngsiv2 import NgsiV2
 from .subscriptions import Notifications, Notifier
@@ -304,6 +306,9 @@ class _Handler(BaseHTTPRequestHandler):
         broker = self.server.broker
         parts = urlsplit(self.path)
         path = parts.path
+        if path.startswith("/ngsi-ld/"):
+            self._handle_ld(method, parts)
+            return
         route = match_route(path)
         api = route[0] if route else ("v2" if path.startswith("/v2") else "v1")
         handler_name = ""
@@ -347,6 +352,31 @@ class _Handler(BaseHTTPRequestHandler):
             log.exception("internal error on %s %s", method, self.path)
             self._send(error_response(api, NgsiError(500, "InternalServerError", "internal error")))
 
+    def _handle_ld(self, method, parts):
+        """NGSI-LD: the same body limit and faults, ProblemDetails errors, the rest in ``ngsild``."""
+        broker = self.server.broker
+        try:
+            try:
+                body = self._read_body(broker.max_body)
+            except NgsiError as exc:
+                kind = "BadRequestData" if exc.status != 413 else "RequestEntityTooLarge"
+                self._send(problem_response(LdProblem(exc.status, kind, HTTPStatus(exc.status).phrase,
+                                                      exc.description)), close=True)
+                return
+            fault = broker.faults.take(method, parts.path)
+            if fault == 0:
+                self.close_connection = True
+                return
+            if fault is not None:
+                self._send(problem_response(LdProblem(fault, "InternalError", HTTPStatus(fault).phrase,
+                                                      "fault injected by the stand-in broker")))
+                return
+            self._send(broker.ld.handle(method, parts.path, parse_qs(parts.query, keep_blank_values=True),
+                                        self.headers, body))
+        except Exception:  # a bug of the stand-in itself: say so, keep serving
+            log.exception("internal error on %s %s", method, self.path)
+            self._send(problem_response(LdProblem(500, "InternalError", "Internal Error", "internal error")))
+
     def _send(self, response, close=False):
         self.send_response(response.status)
         if response.content_type and response.body:
@@ -378,6 +408,7 @@ class BrokerServer:
         self.notifications = Notifications(self.store, self.notifier)
         self.v1 = NgsiV1(self.store, self.notifications, initial_notification=v1_initial_notification)
         self.v2 = NgsiV2(self.store, self.notifications)
+        self.ld = NgsiLd(self.store, self.notifier)
         self.faults = Faults()
         self.max_body = max_body
         self.quiet = quiet
