@@ -157,8 +157,9 @@ class MasterAgent(service.Service):
 
     name = "ic-master"
 
-    def __init__(self, config, data, table, reactor, public_ip, spaces=None):
+    def __init__(self, config, data, table, reactor, public_ip, spaces=None, expected_address=None):
         self.config = config
+        self.expected_address = expected_address   # name -> the only address a hello for it may come from, or None
         self.data = data
         self.table = table
         self.reactor = reactor
@@ -299,6 +300,15 @@ class MasterAgent(service.Service):
             self._refuse_later(peer)
             raise ic.Refused(f"{name!r} is the master's own name; give the robot another name",
                              code="not_provisioned")
+        if self.expected_address is not None:
+            expected = self.expected_address(name)
+            source = peer.remote.rsplit(":", 1)[0]
+            if expected is not None and expected != source:
+                log.warning("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
+                            expected)
+                self._refuse_later(peer)
+                raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
+                                 f"{source}", code="wrong_address")
         pi = yield threads.deferToThread(self.data.platform_instance, name)
         if pi is None:
             log.info("refused hello from %s (%s): not provisioned", name, peer.remote)

@@ -1,7 +1,8 @@
 """The agent ``rcmp_n``: command line, configuration, logging, addresses, and assembling the agent for its role.
 
 Owns:
-- the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``) and ``main()``;
+- the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``, the ``vpn`` subcommand whose
+  work is ``rcmp_vpn``'s) and ``main()``;
 - the configuration files and their validation: ``HOME/init.cfg`` (robot ``robot=yes`` or server VM
   ``robot=no``) or, when it is absent, the master's optional ``HOME/.init.cfg``; every ``[main]`` key of
   CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses`` and ``log_max_bytes``
@@ -305,10 +306,10 @@ class StartupError(Exception):
     """The agent cannot start (no address, data file unusable, cannot listen); ``str()`` is one line."""
 
 
-def build_master(config, reactor):
+def build_master(config, reactor, table=None):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
     from twisted.application import service
-    from . import rcmp_event, rcmp_ms
+    from . import rcmp_event, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import make_site, rdapi_service
     from .rcmp_platform_command import PlatformCommands
@@ -329,8 +330,9 @@ def build_master(config, reactor):
         data.set_master(config.name, vpn, config.inbound_open_ports)
     except (DataError, CommandError) as exc:
         raise StartupError(str(exc)) from None
-    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-    agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip)
+    table = table or rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+    agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip,
+                                   expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
     site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces))
     top = service.MultiService()
     agent.setServiceParent(top)
@@ -339,20 +341,35 @@ def build_master(config, reactor):
     return top
 
 
-def build_robot(config, reactor):
+def build_robot(config, reactor, table=None):
     """A robot or a server VM: the RobotAgent as one MultiService."""
     from twisted.application import service
     from . import rcmp_event, rcmp_ms
-    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+    table = table or rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
     agent = rcmp_event.RobotAgent(config, table, reactor)
     top = service.MultiService()
     agent.setServiceParent(top)
     return top
 
 
-def build_agent(config, reactor):
-    """The agent of ``config.role`` as one MultiService (not started yet); StartupError if it cannot be built."""
-    return build_master(config, reactor) if config.role == "master" else build_robot(config, reactor)
+def build_agent(config, reactor, on_error=None):
+    """The agent of ``config.role`` as one MultiService (not started yet); StartupError if it cannot be built.
+
+    With a managed VPN (``rcmp_vpn.managed_config``) the MultiService holds OpenVPN first (stopped last) and the
+    agent, built once the VPN gave the agent its address; ``on_error(message)`` is told if that build fails.
+    """
+    from . import rcmp_ms, rcmp_vpn
+    build = build_master if config.role == "master" else build_robot
+    conf = rcmp_vpn.managed_config(config)
+    if conf is None:
+        return build(config, reactor)
+    from twisted.application import service
+    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+    top = service.MultiService()
+    vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor)
+    vpn.setServiceParent(top)
+    rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table), on_error or log.error).setServiceParent(top)
+    return top
 
 
 # -- main -------------------------------------------------------------------------------------------------------
@@ -370,6 +387,11 @@ def parse_args(argv):
                         help="the lowest level written to the log (default: INFO)")
     parser.add_argument("--no-stderr", action="store_true",
                         help="log only to HOME/log/rcmp.log, not to stderr (for running as a daemon)")
+    from . import rcmp_vpn
+    commands = parser.add_subparsers(dest="command", metavar="COMMAND",
+                                     help="without a command, run the agent; 'vpn' manages the platform's VPN "
+                                          "('rcmp_n vpn --help')")
+    rcmp_vpn.add_parser(commands, DEFAULT_HOME)
     return parser.parse_args(argv)
 
 
@@ -390,6 +412,9 @@ def _fail(message, status):
 def main(argv=None):
     """Run the agent; returns the exit status (0 after SIGTERM/SIGINT, 2 on a configuration error, 1 otherwise)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    if args.command == "vpn":
+        from . import rcmp_vpn
+        return rcmp_vpn.run(args)
     try:
         config = load_config(args.home)
     except ConfigError as exc:
@@ -401,13 +426,22 @@ def main(argv=None):
 
     from twisted.internet import reactor
     from twisted.internet.error import ReactorNotRunning
+    outcome = {"status": 0}
+
+    def late_error(message):  # the agent could not start once the managed VPN was up
+        _log_to_file_only(f"cannot start: {message}")
+        sys.stderr.write(f"{PROG}: cannot start the {config.role}: {message}\n")
+        outcome["status"] = 2
+        try:
+            reactor.stop()
+        except ReactorNotRunning:
+            pass
+
     try:
-        top = build_agent(config, reactor)
+        top = build_agent(config, reactor, on_error=late_error)
     except StartupError as exc:
         _log_to_file_only(f"cannot start: {exc}")
         return _fail(str(exc), 2)
-
-    outcome = {"status": 0}
 
     def start():
         try:

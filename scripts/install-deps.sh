@@ -11,8 +11,10 @@ PACKAGES=(
   ros-message-runtime libstd-msgs-dev libgeometry-msgs-dev libroscpp-dev cmake g++
   # the agent, the RDAPI and FIROS
   python3-twisted python3-netifaces python3-yaml sqlite3
+  # the platform's VPN (rcmp_vpn: PKI with python3-cryptography, OpenVPN run by the agent)
+  python3-cryptography openvpn
   # tests and benchmarks
-  python3-pytest python3-pytest-timeout wrk curl iproute2 openvpn procps net-tools
+  python3-pytest python3-pytest-timeout wrk curl iproute2 procps net-tools
   # distribution
   zip unzip
 )

@@ -22,7 +22,8 @@ SEED_MASTER_MODULES = [
     "__init__.py", "rcmp_command.py", "rcmp_event.py", "rcmp_ext_connector.py", "rcmp_inter_communication.py",
     "rcmp_ms.py", "rcmp_node.py", "rcmp_platform_command.py", "rcmp_robotics_data.py",
     "rcmp_service_command.py", "rcmp_wd.py"]
-EXTRA_MODULES = ["__main__.py"]  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
+EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
+                 "rcmp_vpn.py"]  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
 SEED_ROBOT_MODULES = [m for m in SEED_MASTER_MODULES if m not in ("rcmp_ext_connector.py", "rcmp_robotics_data.py")]
 SEED_AGENT_FILES = ["ros/rosconsole.config", "install.sh", "sub_inst.sh", "uninstall.sh", "sub_uninst.sh", "rcmpd",
                     "rcmp_n"]
