@@ -15,7 +15,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(ROOT, "firos", "scripts"))
 
 from include import config as cfg  # noqa: E402
-from include.discovery import attribute_name, python_type, robot_from_rcm, robots_from_graph, ros_type  # noqa
+from include.discovery import robot_from_rcm, robots_from_graph  # noqa: E402
 from include.ngsi_client import NgsiClient, NotificationError, parse_notification  # noqa: E402
 from include.sender import Sender  # noqa: E402
 from include.subscriptions import Subscriptions  # noqa: E402
@@ -201,10 +201,24 @@ def test_robot_from_rcm_flips_rcm_driver_point_of_view(tmp_path):
     assert set(topics) == {"pose"}
 
 
-def test_names_and_types():
-    assert attribute_name("move_base/goal") == "move_base.goal"
-    assert python_type("std_msgs/String") == "std_msgs.msg.String"
-    assert ros_type("geometry_msgs.msg.Twist") == "geometry_msgs/Twist" and ros_type("float") is None
+def test_names_and_types_come_from_ngsi_encoding_only():
+    import include.discovery as discovery
+    from include import ngsi_encoding as enc
+    for loose in ("attribute_name", "python_type", "ros_type", "topic_from_attribute"):
+        assert not hasattr(discovery, loose)
+    assert enc.relative_topic_to_attribute("move_base/goal") == "move_base.goal"
+    assert enc.attribute_to_relative_topic("move_base.goal") == "move_base/goal"
+    with pytest.raises(enc.NgsiEncodingError):
+        enc.attribute_to_relative_topic("a..b")
+    assert enc.ld_entity_id("ROBOT", "robot1") == "urn:ngsi-ld:ROBOT:robot1"
+    assert enc.robot_from_ld_entity_id("urn:ngsi-ld:ROBOT:robot1", "ROBOT") == "robot1"
+    for bad in ("robot1", "urn:ngsi-ld:Car:robot1", "urn:ngsi-ld:ROBOT:a/b", "urn:ngsi-ld:ROBOT:"):
+        with pytest.raises(enc.NgsiEncodingError):
+            enc.robot_from_ld_entity_id(bad, "ROBOT")
+    # discovery leaves out what the rules refuse
+    wl = Whitelist("w.json", {"bot": {"subscriber": [".*"]}})
+    graph = {"/bot/ok": ("std_msgs/String", True, False), "/bot/weird": ("notatype", True, False)}
+    assert set(robots_from_graph(graph, wl)["bot"]) == {"ok"}
 
 
 # --- notifications ----------------------------------------------------------------------------------------------

@@ -3,8 +3,11 @@
 Owns the robot table and the rules of CONTRACTS §3 that tie the other modules together: connecting a robot
 creates its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for
 its publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics
-of a connected robot is published on them, FIROS's own updates excepted. Robots explicitly disconnected are not
-brought back by graph discovery until they are connected again. Errors a client can cause raise `ApiError`.
+of a connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to
+the empty list (the command is taken), so that whatever the broker re-sends without a new update commands
+nothing. A whitelist edit takes effect on the robots already mapped: topics no longer allowed are dropped,
+newly allowed ones mapped. Robots explicitly disconnected are not brought back by graph discovery until they are
+connected again. Errors a client can cause raise `ApiError`.
 """
 
 import logging
@@ -14,9 +17,12 @@ from dataclasses import dataclass, field
 
 from include import discovery
 from include.config import ConfigError
-from include.discovery import attribute_name, python_type, ros_type, topic_from_attribute
+from include.discovery import TopicInfo
 from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError, \
     parse_notification
+from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, \
+    attribute_type_to_message_type, message_type_to_attribute_type, relative_topic_to_attribute, \
+    split_firosstamp
 from include.ros_conversion import ConversionError, dict_to_message, load_message_class
 from include.topics import structure
 from include.whitelist import WhitelistError
@@ -24,6 +30,18 @@ from include.whitelist import WhitelistError
 log = logging.getLogger("firos.bridge")
 
 _LITERAL_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
+# NGSI versions whose broker notifies an update only when it changes something (v1 Orion; the stand-in as
+# Orion-LD): the subscription also watches COMMAND, so that a repeated command (COMMAND back from [] to [p1])
+# notifies. v2 repeats use forcedUpdate instead (CONTRACTS §3).
+COMMAND_WATCHED = ("v1", "ld")
+
+
+def _message_type(attr_type):
+    """"pkg/Type" for an attribute type naming a message type, else None."""
+    try:
+        return attribute_type_to_message_type(attr_type)
+    except NgsiEncodingError:
+        return None
 
 
 class ApiError(Exception):
@@ -41,7 +59,7 @@ class Robot:
     namespace: str                   # "/turtle1" for graph robots, "" for an RCM service space
     source: str                      # "graph" | "rcm"
     topics: dict = field(default_factory=dict)   # relative topic -> TopicInfo
-    last_command: dict = field(default_factory=dict)  # attr -> value last published from the broker
+    rcm_info: dict = field(default_factory=dict)  # rcm_driver's firos_info answer (RCM robots)
 
 
 class Firos:
@@ -103,41 +121,66 @@ class Firos:
 
     def connect_rcm(self, name, info):
         """Connect an RCM robot whose topics (the whole service space) come from rcm_driver's firos_info."""
+        info = info if isinstance(info, dict) else {}
         topics = discovery.robot_from_rcm(name, info, self.whitelist)
         with self._membership:
             with self._lock:
                 self.disabled.discard(name)
-            self._connect(name, "", "rcm", topics, force=True)
+            self._connect(name, "", "rcm", topics, force=True, rcm_info=info)
 
-    def _connect(self, name, namespace, source, topics, force=False):
+    def _connect(self, name, namespace, source, topics, force=False, rcm_info=None):
         """Create or extend a robot; True when something changed."""
         with self._lock:
             robot = self.robots.get(name)
             new = robot is None
             if new:
                 robot = self.robots[name] = Robot(name, namespace, source)
-            changed = new
-            for relative, info in topics.items():
-                old = robot.topics.get(relative)
-                if old is None or old.kinds != info.kinds or old.msg_type != info.msg_type:
-                    robot.topics[relative] = info
-                    changed = True
+            if rcm_info is not None:
+                robot.rcm_info = rcm_info
         if new:
             static = {}
             if name in self.descriptions:
                 static[DESCRIPTIONS] = ("DescriptionData", self.descriptions[name])
             self.sender.create(name, static)
             log.info("robot %s connected (%s)", name, source)
+        changed = self._set_topics(robot, topics, replace=rcm_info is not None) or new
         if not (changed or force):
             return False
-        for info in list(robot.topics.values()):
-            if "subscriber" in info.kinds:
-                try:
-                    self.topics.subscribe(name, info)
-                except ConversionError as exc:
-                    log.error("cannot forward %s: %s", info.name, exc)
         self._update_subscription(robot)
         return True
+
+    def _set_topics(self, robot, topics, replace):
+        """Make ``topics`` the robot's mapped topics (``replace``) or add them (discovery: kinds only grow);
+        drop what is no longer mapped, (re)subscribe what is new or changed type. True when anything changed."""
+        with self._lock:
+            old = dict(robot.topics)
+            new = {} if replace else dict(old)
+            for relative, info in topics.items():
+                before = None if replace else old.get(relative)
+                if before is not None and before.msg_type == info.msg_type:
+                    info = TopicInfo(info.name, relative, info.msg_type, before.kinds | info.kinds)
+                new[relative] = info
+            robot.topics = new
+        changed = False
+        for relative, info in old.items():
+            now = new.get(relative)
+            same_type = now is not None and now.msg_type == info.msg_type
+            if now is None or now.kinds != info.kinds or not same_type:
+                changed = True
+            if "subscriber" in info.kinds and not (same_type and "subscriber" in now.kinds):
+                self.topics.unsubscribe(robot.name, info.name)
+                self.sender.forget(robot.name, info.attribute)
+                log.info("%s of %s no longer forwarded to the broker", info.name, robot.name)
+            if "publisher" in info.kinds and not (same_type and "publisher" in now.kinds):
+                self.topics.drop_publisher(info.name)
+        changed = changed or any(relative not in old for relative in new)
+        for info in list(new.values()):
+            if "subscriber" in info.kinds:
+                try:
+                    self.topics.subscribe(robot.name, info)
+                except ConversionError as exc:
+                    log.error("cannot forward %s: %s", info.name, exc)
+        return changed
 
     def _update_subscription(self, robot):
         attrs, wildcard = set(), False
@@ -147,9 +190,14 @@ class Firos:
         for rx, entry in self._whitelist_entries(robot.name):
             for pattern in entry.get("publisher", []):
                 if _LITERAL_TOPIC.fullmatch(pattern):
-                    attrs.add(attribute_name(pattern))
+                    try:
+                        attrs.add(relative_topic_to_attribute(pattern))
+                    except NgsiEncodingError:
+                        continue
                 elif not any(re.fullmatch(pattern, rel) for rel in robot.topics):
                     wildcard = True
+        if attrs and self.settings.ngsi_version in COMMAND_WATCHED:
+            attrs.add(COMMAND)
         if attrs or wildcard:
             self.subscriptions.set(robot.name, [] if wildcard else sorted(attrs))
         else:
@@ -162,14 +210,21 @@ class Firos:
         """Remove the robot: its entity, its subscription, its topics. ApiError 404 if it is not connected."""
         with self._membership:
             with self._lock:
-                robot = self.robots.pop(name, None)
                 self.disabled.add(name)
-            if robot is None:
+            if not self._drop(name):
                 raise ApiError(404, f"robot {name!r} is not connected")
-            self.topics.drop_robot(name)
-            self.subscriptions.remove(name)
-            self.sender.delete(name)
         log.info("robot %s disconnected", name)
+
+    def _drop(self, name):
+        """Forget a robot: its ROS endpoints, its subscription, its entity. False when it was not connected."""
+        with self._lock:
+            robot = self.robots.pop(name, None)
+        if robot is None:
+            return False
+        self.topics.drop_robot(name)
+        self.subscriptions.remove(name)
+        self.sender.delete(name)
+        return True
 
     def disconnect_all(self):
         with self._lock:
@@ -203,15 +258,18 @@ class Firos:
 
     # --- broker → ROS -----------------------------------------------------------------------------------------
     def handle_notification(self, body):
-        """Publish the commanded attributes of a v1/v2 notification; returns {robot: [attributes published]}."""
+        """Publish the commanded attributes of a notification (v1, v2 or NGSI-LD, as configured); returns
+        {robot: [attributes published]}. Every notification naming a publisher attribute in COMMAND is
+        published, a repeated command included; FIROS then writes COMMAND back to [] (see the module doc)."""
         try:
-            entities = parse_notification(body)
+            entities = parse_notification(body, self.settings.ngsi_version)
         except NotificationError as exc:
             raise ApiError(400, str(exc)) from None
         jobs = []
         for eid, _etype, attrs in entities:
+            name = self.read_client.robot_of(eid)
             with self._lock:
-                robot = self.robots.get(eid)
+                robot = self.robots.get(name) if name is not None else None
             if robot is None:
                 continue
             command = attrs.get(COMMAND, (None, []))[1]
@@ -228,26 +286,28 @@ class Firos:
                 if job is not None:
                     jobs.append(job)
         published = {}
-        for robot, attr, topic, msg_type, msg, known, value in jobs:   # all converted: now publish
+        for robot, attr, topic, msg_type, msg, known in jobs:   # all converted: now publish
             self.topics.publish(robot.name, topic, msg_type, msg, known)
-            with self._lock:
-                robot.last_command[attr] = value
             published.setdefault(robot.name, []).append(attr)
+        for name in published:
+            self.sender.command_taken(name)
         return published
 
     def _command_job(self, robot, attr, typed_value):
         attr_type, value = typed_value
-        relative = topic_from_attribute(attr)
+        try:
+            relative = attribute_to_relative_topic(attr)
+        except NgsiEncodingError:
+            return None                                     # not a name FIROS maps: never a topic
         info = robot.topics.get(relative)
         if info is not None and "publisher" in info.kinds:
             topic, msg_type, known = info.name, info.msg_type, True
-            named = ros_type(attr_type)
+            named = _message_type(attr_type) if attr_type is not None else None
             if named is not None and named != msg_type:
                 raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but topic "
-                                    f"{topic} carries {python_type(msg_type)}")
-        elif "publisher" in self.whitelist.topic_kinds(robot.name, relative) or (
-                info is not None and robot.source == "rcm" and "publisher" in info.kinds):
-            msg_type = ros_type(attr_type)
+                                    f"{topic} carries {message_type_to_attribute_type(msg_type)}")
+        elif "publisher" in self.whitelist.topic_kinds(robot.name, relative):
+            msg_type = _message_type(attr_type)
             if msg_type is None:
                 raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r}, "
                                     f"not a message type like std_msgs.msg.String")
@@ -256,18 +316,16 @@ class Firos:
             return None
         if self.sender.is_own(robot.name, attr, value):
             return None
-        with self._lock:
-            if robot.last_command.get(attr) == value:
-                return None
-        if isinstance(value, dict):
-            data = {k: v for k, v in value.items() if k != "firosstamp"}
-        else:
-            raise ApiError(400, f"value of {robot.name}.{attr} must be a JSON object with the message fields")
+        try:
+            data, _ = split_firosstamp(value)
+        except NgsiEncodingError:
+            raise ApiError(400, f"value of {robot.name}.{attr} must be a JSON object with the message fields") \
+                from None
         try:
             msg = dict_to_message(data, load_message_class(msg_type))
         except ConversionError as exc:
             raise ApiError(400, f"{robot.name}.{attr}: {exc}") from None
-        return robot, attr, topic, msg_type, msg, known, value
+        return robot, attr, topic, msg_type, msg, known
 
     # --- reading ----------------------------------------------------------------------------------------------
     def list_robots(self):
@@ -282,7 +340,7 @@ class Firos:
                 except ConversionError:
                     shape = {}
                 for kind in sorted(info.kinds):
-                    entries.append({"name": info.relative, "type": python_type(info.msg_type),
+                    entries.append({"name": info.relative, "type": message_type_to_attribute_type(info.msg_type),
                                     "structure": shape, "pubsub": kind})
             result.append({"name": name, "topics": entries})
         return result
@@ -325,8 +383,27 @@ class Firos:
         self._after_whitelist_change()
 
     def _after_whitelist_change(self):
-        """Newly allowed robots and topics are picked up at once; robots already connected keep their topics."""
+        """The edit takes effect at once on the robots already mapped: topics the whitelist no longer allows are
+        dropped (no more updates, their ROS endpoints removed), a robot it no longer allows at all is
+        disconnected (discovery brings it back when allowed again), newly allowed robots and topics are mapped,
+        and the broker subscriptions follow."""
         with self._membership:
+            with self._lock:
+                robots = list(self.robots.values())
+            for robot in robots:
+                if robot.source == "rcm":
+                    self._set_topics(robot, discovery.robot_from_rcm(robot.name, robot.rcm_info, self.whitelist),
+                                     replace=True)
+                elif not self.whitelist.robot_allowed(robot.name):
+                    self._drop(robot.name)
+                    log.info("robot %s disconnected: the whitelist no longer names it", robot.name)
+                else:
+                    allowed = {}
+                    for relative, info in robot.topics.items():
+                        kinds = info.kinds & self.whitelist.topic_kinds(robot.name, relative)
+                        if kinds:
+                            allowed[relative] = TopicInfo(info.name, relative, info.msg_type, kinds)
+                    self._set_topics(robot, allowed, replace=True)
             try:
                 self._scan(None)
             except OSError as exc:
@@ -335,4 +412,3 @@ class Firos:
                 robots = list(self.robots.values())
             for robot in robots:
                 self._update_subscription(robot)
-

@@ -2,7 +2,8 @@
 
 Owns the `Settings` of the chosen environment block (CONTRACTS §3), the duration syntax the subscription keys
 accept (seconds as a number, or ISO 8601 such as "PT0S", "PT5M", "P1D"), and `ConfigError`, whose text is one
-line naming the file and the problem. Nothing here touches ROS or the network.
+line naming the file and the problem. The keys of the block are one table (`KEYS`: where the key sits, which
+Settings field it fills, which parser checks it); the few rules between keys follow it. Nothing here touches ROS or the network.
 """
 
 import json
@@ -13,6 +14,8 @@ from dataclasses import dataclass, field
 PACKAGE_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))),
                                   "config")
 
+DEFAULT_LD_CONTEXT = "https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld"
+NGSI_VERSIONS = ("v1", "v2", "ld")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL", "FATAL")
 _ISO_DURATION = re.compile(
     r"^P(?:(?P<years>\d+(?:\.\d+)?)Y)?(?:(?P<months>\d+(?:\.\d+)?)M)?(?:(?P<weeks>\d+(?:\.\d+)?)W)?"
@@ -46,7 +49,8 @@ class Settings:
     endpoint_address: str | None = None
     endpoint_port: int | None = None
     log_level: str = "INFO"
-    ngsi_version: str = "v2"
+    ngsi_version: str = "v2"                # "v1", "v2" or "ld"
+    ld_context: str = DEFAULT_LD_CONTEXT     # (ext) the @context FIROS names in NGSI-LD requests
     context_type: str = "ROBOT"
     pub_frequency: float = 0.0              # milliseconds between two sends of one attribute
     fiware_service: str | None = None
@@ -90,19 +94,116 @@ def read_json(path, what):
     return data
 
 
-def _port(value, path, key):
+class _Bad(ValueError):
+    """A value refused by one of the parsers below; the text completes "<key> ..."."""
+
+
+def _port(value):
     if isinstance(value, str) and value.strip().isdigit():
         value = int(value.strip())
     if not isinstance(value, int) or isinstance(value, bool) or not 0 < value < 65536:
-        raise ConfigError(path, f"{key} must be a TCP port number (1-65535), not {value!r}")
+        raise _Bad(f"must be a TCP port number (1-65535), not {value!r}")
     return value
 
 
-def _object(block, key, path, where):
-    value = block.get(key, {})
-    if not isinstance(value, dict):
-        raise ConfigError(path, f"{where}{key} must be a JSON object")
+def _duration(value):
+    try:
+        return parse_duration(value, "", "")
+    except ConfigError as exc:
+        raise _Bad(exc.problem.strip()) from None
+
+
+def _refresh_delay(value):
+    """Seconds, or a number between 0 and 1 meaning that fraction of subscription_length (kept negative here
+    and resolved once the length is known)."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and 0 < value < 1:
+        return -float(value)
+    return _duration(value)
+
+
+def _text(what):
+    def parse(value):
+        if not isinstance(value, str) or not value.strip():
+            raise _Bad(f"must be {what}")
+        return value.strip()
+    return parse
+
+
+def _log_level(value):
+    if not isinstance(value, str) or value.upper() not in LOG_LEVELS:
+        raise _Bad(f"must be one of {', '.join(LOG_LEVELS)}, not {value!r}")
+    return value.upper()
+
+
+def _ngsi_version(value):
+    if value not in NGSI_VERSIONS:
+        raise _Bad(f"must be \"v1\", \"v2\" or \"ld\", not {value!r}")
     return value
+
+
+def _type_name(value):
+    if not isinstance(value, str) or not re.fullmatch(r"[A-Za-z0-9_\-]{1,256}", value):
+        raise _Bad(f"must be an NGSI type name, not {value!r}")
+    return value
+
+
+def _url(value):
+    if not isinstance(value, str) or not re.fullmatch(r"https?://[^\s<>\"]+", value):
+        raise _Bad(f"must be an http(s) URL of a JSON-LD @context, not {value!r}")
+    return value
+
+
+def _non_negative(value):
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+        raise _Bad(f"must be a number not below zero, not {value!r}")
+    return float(value)
+
+
+def _service_path(value):
+    value = _text("a non-empty string")(value)
+    if not value.startswith("/"):
+        raise _Bad("must start with \"/\"")
+    return value
+
+
+# Every key of the environment block: (path inside the block, Settings field, parser). Keys listed twice are
+# alternatives, the later place winning. contextbroker.address is required; the rest default to Settings'.
+KEYS = (
+    (("server", "port"), "server_port", _port),
+    (("contextbroker", "address"), "broker_address", _text("a host name or address")),
+    (("contextbroker", "port"), "broker_port", _port),
+    (("contextbroker", "subscription", "throttling"), "throttling", _duration),
+    (("contextbroker", "subscription", "subscription_length"), "subscription_length", _duration),
+    (("contextbroker", "subscription", "subscription_refresh_delay"), "subscription_refresh_delay",
+     _refresh_delay),
+    (("interface",), "interface", _text("\"public\" or an interface name")),
+    (("endpoint", "address"), "endpoint_address", _text("a host name or address")),
+    (("endpoint", "port"), "endpoint_port", _port),
+    (("log_level",), "log_level", _log_level),
+    (("ngsi_version",), "ngsi_version", _ngsi_version),
+    (("ld_context",), "ld_context", _url),
+    (("context_type",), "context_type", _type_name),
+    (("pub_frequency",), "pub_frequency", _non_negative),
+    (("discovery_interval",), "discovery_interval", _non_negative),
+    (("retry_max_delay",), "retry_max_delay", _non_negative),
+    (("contextbroker", "fiware_service"), "fiware_service", _text("a non-empty string")),
+    (("fiware_service",), "fiware_service", _text("a non-empty string")),
+    (("contextbroker", "fiware_servicepath"), "fiware_servicepath", _service_path),
+    (("fiware_servicepath",), "fiware_servicepath", _service_path),
+)
+
+
+def _lookup(block, keys, path, where):
+    """(True, value) when the block holds the dotted key, (False, None) when not; ConfigError when some part on
+    the way is not an object."""
+    node = block
+    for depth, key in enumerate(keys):
+        if not isinstance(node, dict):
+            raise ConfigError(path, f"{where}{'.'.join(keys[:depth])} must be a JSON object")
+        if key not in node:
+            return False, None
+        node = node[key]
+    return True, node
 
 
 def load_settings(config_dir):
@@ -115,88 +216,34 @@ def load_settings(config_dir):
     block = data.get(env)
     if not isinstance(block, dict):
         raise ConfigError(path, f"the environment \"{env}\" has no block (an object named \"{env}\")")
-    settings = Settings(config_dir=config_dir, environment=env)
     where = f"{env}."
-
-    server = _object(block, "server", path, where)
-    if "port" in server:
-        settings.server_port = _port(server["port"], path, f"{where}server.port")
-
-    broker = block.get("contextbroker")
-    if not isinstance(broker, dict):
+    if not isinstance(block.get("contextbroker"), dict):
         raise ConfigError(path, f"{where}contextbroker is missing (it needs at least \"address\")")
-    address = broker.get("address")
-    if not isinstance(address, str) or not address.strip():
+    settings = Settings(config_dir=config_dir, environment=env)
+    given = set()
+    for keys, field_name, parse in KEYS:
+        present, value = _lookup(block, keys, path, where)
+        if not present:
+            continue
+        try:
+            setattr(settings, field_name, parse(value))
+        except _Bad as exc:
+            raise ConfigError(path, f"{where}{'.'.join(keys)} {exc}") from None
+        given.add(field_name)
+    if "broker_address" not in given:
         raise ConfigError(path, f"{where}contextbroker.address is missing or empty")
-    settings.broker_address = address.strip()
-    if "port" in broker:
-        settings.broker_port = _port(broker["port"], path, f"{where}contextbroker.port")
-    sub = _object(broker, "subscription", path, f"{where}contextbroker.")
     sub_where = f"{where}contextbroker.subscription."
-    if "throttling" in sub:
-        settings.throttling = parse_duration(sub["throttling"], path, sub_where + "throttling")
-    if "subscription_length" in sub:
-        settings.subscription_length = parse_duration(sub["subscription_length"], path,
-                                                      sub_where + "subscription_length")
     if settings.subscription_length < 1:
         raise ConfigError(path, f"{sub_where}subscription_length must be at least one second")
-    settings.subscription_refresh_delay = settings.subscription_length / 2
-    if "subscription_refresh_delay" in sub:
-        delay = sub["subscription_refresh_delay"]
-        if isinstance(delay, (int, float)) and not isinstance(delay, bool) and 0 < delay < 1:
-            settings.subscription_refresh_delay = delay * settings.subscription_length
-        else:
-            settings.subscription_refresh_delay = parse_duration(delay, path, sub_where + "subscription_refresh_delay")
+    if "subscription_refresh_delay" not in given:
+        settings.subscription_refresh_delay = settings.subscription_length / 2
+    elif settings.subscription_refresh_delay < 0:
+        settings.subscription_refresh_delay *= -settings.subscription_length
     if not 0 < settings.subscription_refresh_delay < settings.subscription_length:
         raise ConfigError(path, f"{sub_where}subscription_refresh_delay must be above zero and below "
                                 f"subscription_length, so that subscriptions are refreshed before they expire")
-
-    interface = block.get("interface", "public")
-    if not isinstance(interface, str) or not interface:
-        raise ConfigError(path, f"{where}interface must be \"public\" or an interface name")
-    settings.interface = interface
-    endpoint = _object(block, "endpoint", path, where)
-    if endpoint:
-        ep_addr = endpoint.get("address")
-        if ep_addr is not None and (not isinstance(ep_addr, str) or not ep_addr):
-            raise ConfigError(path, f"{where}endpoint.address must be a host name or address")
-        settings.endpoint_address = ep_addr
-        if "port" in endpoint:
-            settings.endpoint_port = _port(endpoint["port"], path, f"{where}endpoint.port")
-
-    level = block.get("log_level", "INFO")
-    if not isinstance(level, str) or level.upper() not in LOG_LEVELS:
-        raise ConfigError(path, f"{where}log_level must be one of {', '.join(LOG_LEVELS)}, not {level!r}")
-    settings.log_level = level.upper()
-
-    version = block.get("ngsi_version", "v2")
-    if version not in ("v1", "v2"):
-        raise ConfigError(path, f"{where}ngsi_version must be \"v1\" or \"v2\", not {version!r}")
-    settings.ngsi_version = version
-
-    ctype = block.get("context_type", "ROBOT")
-    if not isinstance(ctype, str) or not re.fullmatch(r"[A-Za-z0-9_\-]{1,256}", ctype):
-        raise ConfigError(path, f"{where}context_type must be an NGSI type name, not {ctype!r}")
-    settings.context_type = ctype
-
-    for key, attr in (("pub_frequency", "pub_frequency"), ("discovery_interval", "discovery_interval"),
-                      ("retry_max_delay", "retry_max_delay")):
-        if key in block:
-            value = block[key]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-                raise ConfigError(path, f"{where}{key} must be a number not below zero, not {value!r}")
-            setattr(settings, attr, float(value))
     if settings.retry_max_delay < 0.1:
         raise ConfigError(path, f"{where}retry_max_delay must be at least 0.1 seconds")
-
-    for key, attr in (("fiware_service", "fiware_service"), ("fiware_servicepath", "fiware_servicepath")):
-        value = block.get(key, broker.get(key))
-        if value is not None:
-            if not isinstance(value, str) or not value:
-                raise ConfigError(path, f"{where}{key} must be a non-empty string")
-            setattr(settings, attr, value)
-    if settings.fiware_servicepath is not None and not settings.fiware_servicepath.startswith("/"):
-        raise ConfigError(path, f"{where}fiware_servicepath must start with \"/\"")
     return settings
 
 

@@ -2,13 +2,18 @@
 
 A robot is the first namespace of a topic (`/turtle1/pose` → robot `turtle1`, topic `pose`); message types come
 from the master (`getTopicTypes`). FIROS's own endpoints do not count, so a topic only FIROS subscribes to is not a
-sign that the robot listens. Owns the graph reading (rosgraph, no rospy) and the topic naming rules:
-`attribute_name("move_base/goal") == "move_base.goal"` and `python_type("std_msgs/String") == "std_msgs.msg.String"`.
+sign that the robot listens. Owns the graph reading (rosgraph, no rospy); the naming rules (topic → attribute,
+message type → attribute type) are `ngsi_encoding`'s. A topic whose name or type breaks them is left out.
 """
 
+import logging
 from dataclasses import dataclass, field
 
 import rosgraph
+
+from include.ngsi_encoding import NgsiEncodingError, attribute_type_to_message_type, relative_topic_to_attribute
+
+log = logging.getLogger("firos.discovery")
 
 IGNORED_TOPICS = ("/rosout", "/rosout_agg")
 IGNORED_NAMESPACES = ("firos", "rcm")
@@ -25,35 +30,18 @@ class TopicInfo:
 
     @property
     def attribute(self):
-        return attribute_name(self.relative)
+        return relative_topic_to_attribute(self.relative)
 
 
-def attribute_name(relative_topic):
-    return relative_topic.strip("/").replace("/", ".")
-
-
-def topic_from_attribute(attribute):
-    return attribute.replace(".", "/")
-
-
-def python_type(msg_type):
-    """"pkg/Type" → "pkg.msg.Type" (the attribute type FIROS writes)."""
-    if "/" in msg_type:
-        pkg, name = msg_type.split("/", 1)
-        return f"{pkg}.msg.{name}"
-    return msg_type
-
-
-def ros_type(attr_type):
-    """"pkg.msg.Type" (or "pkg/Type") → "pkg/Type"; None when it is neither."""
-    if not isinstance(attr_type, str):
-        return None
-    if "/" in attr_type and attr_type.count("/") == 1:
-        return attr_type
-    parts = attr_type.split(".")
-    if len(parts) == 3 and parts[1] == "msg" and all(parts):
-        return f"{parts[0]}/{parts[2]}"
-    return None
+def _valid(relative, msg_type):
+    """True when the topic name and message type follow the naming rules (FIROS cannot map them otherwise)."""
+    try:
+        relative_topic_to_attribute(relative)
+        attribute_type_to_message_type(msg_type)
+        return True
+    except NgsiEncodingError as exc:
+        log.debug("topic %s left out: %s", relative, exc)
+        return False
 
 
 def split_topic(topic):
@@ -109,7 +97,7 @@ def robots_from_graph(graph_topics, whitelist, only=None):
             kinds.add("subscriber")
         if "publisher" in listed:
             kinds.add("publisher")
-        if kinds:
+        if kinds and _valid(relative, msg_type):
             robots.setdefault(robot, {})[relative] = TopicInfo(topic, relative, msg_type, kinds)
     return robots
 
@@ -140,7 +128,9 @@ def robot_from_rcm(robot, info, whitelist):
         kind = ROS_TO_BROKER_KIND[kind]
         if filtered and kind not in whitelist.topic_kinds(robot, relative):
             continue
-        msg_type = ros_type(msg) or msg
+        if not _valid(relative, msg):
+            continue
+        msg_type = attribute_type_to_message_type(msg)
         info_entry = topics.setdefault(relative, TopicInfo(full, relative, msg_type, set()))
         info_entry.kinds.add(kind)
     return topics

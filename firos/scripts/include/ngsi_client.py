@@ -21,6 +21,15 @@ from include import ngsi_encoding
 COMMAND = "COMMAND"
 DESCRIPTIONS = "descriptions"
 
+LD_BASE = "/ngsi-ld/v1"
+LD_CONTEXT_REL = "http://www.w3.org/ns/json-ld#context"
+LD_MESSAGE_TYPE = "messageType"     # NGSI-LD: the sub-Property carrying an attribute's message type
+LD_PLAIN_TYPES = (COMMAND, "DescriptionData")   # attribute types FIROS does not write as messageType
+LD_ATTRIBUTE_TYPES = ("Property", "Relationship", "GeoProperty", "LanguageProperty", "JsonProperty",
+                      "VocabProperty", "ListProperty", "ListRelationship")
+LD_NOT_ATTRIBUTES = ("id", "type", "@context", "scope", "createdAt", "modifiedAt", "deletedAt", "location",
+                     "observationSpace", "operationSpace")
+
 
 class BrokerUnavailable(Exception):
     """The broker cannot be reached or answered with a server error: keep the data and retry later."""
@@ -35,7 +44,21 @@ class BrokerError(Exception):
 
 
 class NotificationError(ValueError):
-    """A notification body is not an NGSI v1 or v2 notification."""
+    """A notification body is not an NGSI v1, v2 or NGSI-LD notification."""
+
+
+def problem_text(parsed, text):
+    """The readable part of an error answer: NGSI-LD ProblemDetails ("title: detail [type]"), Orion v2's
+    {"error", "description"}, or the raw text."""
+    if isinstance(parsed, dict):
+        if "type" in parsed and ("title" in parsed or "detail" in parsed):
+            kind = str(parsed.get("type", "")).rsplit("/", 1)[-1]
+            title = parsed.get("title") or kind
+            detail = parsed.get("detail")
+            return f"{title}: {detail} [{kind}]" if detail else f"{title} [{kind}]"
+        if "error" in parsed and "description" in parsed:
+            return f"{parsed['error']}: {parsed['description']}"
+    return text
 
 
 def iso_utc(ts):
@@ -70,7 +93,7 @@ def decode_value(version, value):
 
 
 class NgsiClient:
-    """One connection to the broker speaking NGSI ``version`` ("v1" or "v2")."""
+    """One connection to the broker speaking NGSI ``version`` ("v1", "v2" or "ld")."""
 
     def __init__(self, settings, timeout=5.0):
         self.settings = settings
@@ -82,10 +105,32 @@ class NgsiClient:
         self.lock = threading.Lock()
         self._conn = None
         self.headers = {"Accept": "application/json"}
-        if settings.fiware_service:
-            self.headers["Fiware-Service"] = settings.fiware_service
-        if settings.fiware_servicepath:
-            self.headers["Fiware-ServicePath"] = settings.fiware_servicepath
+        if self.version == "ld":
+            # NGSI-LD names the @context of a JSON body (and of the terms in a query) in a Link header
+            self.headers["Link"] = f'<{settings.ld_context}>; rel="{LD_CONTEXT_REL}"; type="application/ld+json"'
+            if settings.fiware_service:
+                self.headers["NGSILD-Tenant"] = settings.fiware_service
+        else:
+            if settings.fiware_service:
+                self.headers["Fiware-Service"] = settings.fiware_service
+            if settings.fiware_servicepath:
+                self.headers["Fiware-ServicePath"] = settings.fiware_servicepath
+
+    # --- names --------------------------------------------------------------------------------------------
+    def entity_id(self, robot):
+        """The broker's entity id of a robot (NGSI-LD: a URN)."""
+        if self.version == "ld":
+            return ngsi_encoding.ld_entity_id(self.type, robot)
+        return robot
+
+    def robot_of(self, entity_id):
+        """The robot name of a broker entity id, or None when the id is not one FIROS makes."""
+        if self.version != "ld":
+            return entity_id if isinstance(entity_id, str) else None
+        try:
+            return ngsi_encoding.robot_from_ld_entity_id(entity_id, self.type)
+        except ngsi_encoding.NgsiEncodingError:
+            return None
 
     # --- HTTP -------------------------------------------------------------------------------------------------
     def close(self):
@@ -128,9 +173,9 @@ class NgsiClient:
             except ValueError:
                 parsed = None
         if status >= 500:
-            raise BrokerUnavailable(f"broker answered {status}: {text[:200]}")
+            raise BrokerUnavailable(f"broker answered {status}: {problem_text(parsed, text)[:200]}")
         if status not in ok:
-            raise BrokerError(status, text)
+            raise BrokerError(status, problem_text(parsed, text))
         if self.version == "v1" and isinstance(parsed, dict):
             _raise_v1_error(parsed)
         return status, resp_headers, parsed
@@ -140,7 +185,9 @@ class NgsiClient:
         """Append/update attributes. ``entities``: {id: {attr: (type, value)}} with plain (decoded) values."""
         if not entities:
             return
-        if self.version == "v2":
+        if self.version == "ld":
+            self._ld_upsert(entities)
+        elif self.version == "v2":
             payload = []
             for eid, attrs in entities.items():
                 entity = {"id": eid, "type": self.type}
@@ -156,10 +203,31 @@ class NgsiClient:
                     for name, (atype, value) in attrs.items()]})
             self.request("POST", "/v1/updateContext", {"contextElements": elements, "updateAction": "APPEND"})
 
+    def _ld_upsert(self, entities):
+        """NGSI-LD batch upsert with options=update: entities are created when missing, otherwise the given
+        attributes are replaced and the others kept (ETSI GS CIM 009 5.6.8 / 6.15.3.1). A 207 answer lists the
+        entities the broker refused: that is a BrokerError naming them."""
+        payload = []
+        for robot, attrs in entities.items():
+            entity = {"id": self.entity_id(robot), "type": self.type}
+            for name, (atype, value) in attrs.items():
+                entity[name] = ld_property(atype, value)
+            payload.append(entity)
+        status, _, answer = self.request("POST", f"{LD_BASE}/entityOperations/upsert?options=update", payload,
+                                         ok=(200, 201, 204, 207))
+        if status == 207:
+            errors = (answer or {}).get("errors") if isinstance(answer, dict) else None
+            if errors:
+                text = "; ".join(f"{e.get('entityId')}: {problem_text(e.get('error'), json.dumps(e.get('error')))}"
+                                 for e in errors if isinstance(e, dict))
+                raise BrokerError(207, f"batch upsert refused for {text}")
+
     def delete_entity(self, eid):
         """Delete the entity; an entity that is already gone is fine."""
         try:
-            if self.version == "v2":
+            if self.version == "ld":
+                self.request("DELETE", f"{LD_BASE}/entities/{_q(self.entity_id(eid))}")
+            elif self.version == "v2":
                 self.request("DELETE", f"/v2/entities/{_q(eid)}?type={_q(self.type)}")
             else:
                 self.request("POST", "/v1/updateContext", {"contextElements": [
@@ -171,6 +239,12 @@ class NgsiClient:
     def get_entity(self, eid):
         """{attr: {"type", "value"}} of the entity with decoded values, or None when the broker has no such entity."""
         try:
+            if self.version == "ld":
+                _, _, body = self.request("GET", f"{LD_BASE}/entities/{_q(self.entity_id(eid))}")
+                if not isinstance(body, dict):
+                    return None
+                return {name: {"type": atype, "value": value}
+                        for name, (atype, value) in ld_attributes(body, strict=False).items()}
             if self.version == "v2":
                 _, _, body = self.request("GET", f"/v2/entities/{_q(eid)}?type={_q(self.type)}")
                 if not isinstance(body, dict):
@@ -193,6 +267,21 @@ class NgsiClient:
     # --- subscriptions ----------------------------------------------------------------------------------------
     def subscribe(self, eid, url, length, throttling, now, attrs=()):
         """Subscribe to changes of the entity's ``attrs`` (empty: any attribute); returns the subscription id."""
+        if self.version == "ld":
+            body = {"type": "Subscription", "description": f"FIROS commands for {eid}",
+                    "entities": [{"id": self.entity_id(eid), "type": self.type}],
+                    "notification": {"format": "normalized",
+                                     "endpoint": {"uri": url, "accept": "application/json"}},
+                    "expiresAt": iso_utc(now + length)}
+            if attrs:
+                body["watchedAttributes"] = list(attrs)
+            if throttling > 0:
+                body["throttling"] = throttling
+            _, headers, _ = self.request("POST", f"{LD_BASE}/subscriptions", body)
+            sub_id = urllib.parse.unquote(headers.get("location", "").rstrip("/").rsplit("/", 1)[-1])
+            if not sub_id:
+                raise BrokerError(201, "subscription created without a Location header")
+            return sub_id
         if self.version == "v2":
             body = {"description": f"FIROS commands for {eid}",
                     "subject": {"entities": [{"id": eid, "type": self.type}], "condition": {"attrs": list(attrs)}},
@@ -216,7 +305,9 @@ class NgsiClient:
 
     def refresh(self, sub_id, length, now):
         """Push the subscription's expiry ``length`` seconds ahead; BrokerError 404 if the broker forgot it."""
-        if self.version == "v2":
+        if self.version == "ld":
+            self.request("PATCH", f"{LD_BASE}/subscriptions/{_q(sub_id)}", {"expiresAt": iso_utc(now + length)})
+        elif self.version == "v2":
             self.request("PATCH", f"/v2/subscriptions/{_q(sub_id)}", {"expires": iso_utc(now + length)})
         else:
             self.request("POST", "/v1/updateContextSubscription",
@@ -224,7 +315,9 @@ class NgsiClient:
 
     def unsubscribe(self, sub_id):
         try:
-            if self.version == "v2":
+            if self.version == "ld":
+                self.request("DELETE", f"{LD_BASE}/subscriptions/{_q(sub_id)}")
+            elif self.version == "v2":
                 self.request("DELETE", f"/v2/subscriptions/{_q(sub_id)}")
             else:
                 self.request("POST", "/v1/unsubscribeContext", {"subscriptionId": sub_id})
@@ -259,8 +352,81 @@ def _raise_v1_error(answer):
         raise BrokerError(int(code) if code.isdigit() else 400, json.dumps(answer))
 
 
-def parse_notification(body):
-    """[(entity id, entity type, {attr: (type, decoded value)})] from a v1 or v2 notification; NotificationError."""
+def ld_property(atype, value):
+    """An NGSI-LD Property for a FIROS attribute: the value as it is; a message value (a dict with firosstamp)
+    also gets ``observedAt`` (its stamp) and its message type as the sub-Property ``messageType``."""
+    prop = {"type": "Property", "value": value}
+    if isinstance(value, dict):
+        _, stamp = ngsi_encoding.split_firosstamp(value)
+        if stamp is not None:
+            prop["observedAt"] = iso_utc(stamp)
+    if atype not in LD_PLAIN_TYPES:
+        prop[LD_MESSAGE_TYPE] = {"type": "Property", "value": atype}
+    return prop
+
+
+def ld_attributes(entity, strict=True):
+    """{name: (message type or None, value)} of an NGSI-LD entity in normalized form. An attribute given as a
+    list of instances (datasetId) counts by its default instance (the one without datasetId, else the first).
+    ``strict``: a malformed attribute is a NotificationError, otherwise it is left out."""
+    attrs = {}
+    eid = entity.get("id")
+    for name, attr in entity.items():
+        if name in LD_NOT_ATTRIBUTES:
+            continue
+        if isinstance(attr, list) and attr:
+            attr = next((a for a in attr if isinstance(a, dict) and "datasetId" not in a), attr[0])
+        problem = None
+        if not isinstance(attr, dict):
+            problem = f"attribute \"{name}\" of \"{eid}\" must be an object"
+        elif attr.get("type") not in LD_ATTRIBUTE_TYPES:
+            problem = f"attribute \"{name}\" of \"{eid}\" needs a \"type\" such as \"Property\""
+        elif attr["type"] == "Relationship":
+            if "object" not in attr:
+                problem = f"Relationship \"{name}\" of \"{eid}\" needs an \"object\""
+        elif not any(key in attr for key in ("value", "json", "vocab", "languageMap", "valueList",
+                                             "objectList")):
+            problem = f"{attr['type']} \"{name}\" of \"{eid}\" needs a \"value\""
+        if problem:
+            if strict:
+                raise NotificationError(problem)
+            continue
+        if attr["type"] == "Relationship":
+            value = attr["object"]
+        else:
+            value = next(attr[key] for key in ("value", "json", "vocab", "languageMap", "valueList", "objectList")
+                         if key in attr)
+        mtype = attr.get(LD_MESSAGE_TYPE)
+        mtype = mtype.get("value") if isinstance(mtype, dict) else None
+        attrs[name] = (mtype if isinstance(mtype, str) else (COMMAND if name == COMMAND else None), value)
+    return attrs
+
+
+def parse_ld_notification(body):
+    """[(entity id, entity type, {attr: (message type or None, value)})] from an NGSI-LD notification
+    (ETSI GS CIM 009 5.3.1: {"id", "type": "Notification", "subscriptionId", "notifiedAt", "data": [entities]});
+    NotificationError when the body is not one."""
+    if not isinstance(body, dict):
+        raise NotificationError("a notification must be a JSON object")
+    if body.get("type") != "Notification" or "data" not in body:
+        raise NotificationError("not an NGSI-LD notification: expected {\"type\": \"Notification\", "
+                                "\"data\": [entities], ...}")
+    data = body["data"]
+    if not isinstance(data, list):
+        raise NotificationError("\"data\" must be a list of entities")
+    result = []
+    for entity in data:
+        if not isinstance(entity, dict) or not isinstance(entity.get("id"), str):
+            raise NotificationError("every entity in \"data\" needs a string \"id\"")
+        result.append((entity["id"], entity.get("type"), ld_attributes(entity)))
+    return result
+
+
+def parse_notification(body, version="v2"):
+    """[(entity id, entity type, {attr: (type, decoded value)})] from a notification: NGSI-LD's when ``version``
+    is "ld", else v1's or v2's (told apart by their shape); NotificationError when the body is none of these."""
+    if version == "ld":
+        return parse_ld_notification(body)
     if not isinstance(body, dict):
         raise NotificationError("a notification must be a JSON object")
     result = []

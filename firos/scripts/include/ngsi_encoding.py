@@ -1,7 +1,8 @@
 """How FIROS writes values and names into NGSI attributes (CONTRACTS section 3), and reads them back.
 
 Owns the value encodings of NGSI v1 and v2, the attribute names made from topic names, the attribute types made
-from message types, and the ``firosstamp`` member added to every value. Pure functions, no I/O.
+from message types, the NGSI-LD entity ids made from robot names, and the ``firosstamp`` member added to every
+value: the one place for FIROS's naming rules (every other module calls these). Pure functions, no I/O.
 
 Public API
 ----------
@@ -26,6 +27,10 @@ Public API
 ``topic_to_attribute(robot, topic) -> str`` / ``attribute_to_topic(robot, attribute) -> str``
     ``("robot1", "/robot1/move_base/goal")`` <-> ``"move_base.goal"``: the topic relative to the robot's
     namespace with ``/`` written ``.``. ROS names never contain ``.``, so the mapping is one to one.
+``relative_topic_to_attribute("move_base/goal") -> "move_base.goal"`` / ``attribute_to_relative_topic``
+    The same for a topic already relative to its robot (or outside any namespace, as an RCM robot's ``/odom``).
+``ld_entity_id("ROBOT", "robot1") -> "urn:ngsi-ld:ROBOT:robot1"`` / ``robot_from_ld_entity_id(id, "ROBOT")``
+    NGSI-LD entity ids are URIs; FIROS's robots are ``urn:ngsi-ld:<type>:<robot>``.
 ``message_type_to_attribute_type("std_msgs/String") -> "std_msgs.msg.String"`` and the reverse
     ``attribute_type_to_message_type`` (which also accepts ``pkg/Type`` as it is).
 ``FIROSSTAMP``, ``with_firosstamp(message_dict, stamp) -> dict``, ``split_firosstamp(value) -> (dict, float|None)``
@@ -44,7 +49,8 @@ import re
 __all__ = [
     "NgsiEncodingError", "FORBIDDEN_CHARACTERS", "FIROSSTAMP",
     "encode_v1", "decode_v1", "encode_v2", "decode_v2",
-    "topic_to_attribute", "attribute_to_topic",
+    "topic_to_attribute", "attribute_to_topic", "relative_topic_to_attribute", "attribute_to_relative_topic",
+    "LD_ID_PREFIX", "ld_entity_id", "robot_from_ld_entity_id",
     "message_type_to_attribute_type", "attribute_type_to_message_type",
     "with_firosstamp", "split_firosstamp",
 ]
@@ -58,6 +64,9 @@ class NgsiEncodingError(ValueError):
 FORBIDDEN_CHARACTERS = "<>\"'=;()"
 
 FIROSSTAMP = "firosstamp"
+
+# NGSI-LD entity ids are URIs; FIROS names robots urn:ngsi-ld:<type>:<robot> (ETSI GS CIM 009, annex A.3).
+LD_ID_PREFIX = "urn:ngsi-ld:"
 
 # The v1 quote: the seed writes every JSON '"' as the URL escape of "'".
 _V1_QUOTE = "%27"
@@ -203,6 +212,27 @@ def _check_robot(robot):
         raise NgsiEncodingError("robot name %r is not a ROS name segment (letters, digits, underscores)" % (robot,))
 
 
+def relative_topic_to_attribute(relative):
+    """``"move_base/goal"`` (a topic relative to the robot's namespace) -> ``"move_base.goal"``."""
+    if not isinstance(relative, str):
+        raise NgsiEncodingError("topic must be a str, got %s" % type(relative).__name__)
+    segments = relative.strip("/").split("/")
+    if not all(_NAME_SEGMENT_RE.match(segment) for segment in segments):
+        raise NgsiEncodingError("topic %r is not a valid ROS topic name" % relative)
+    return ".".join(segments)
+
+
+def attribute_to_relative_topic(attribute):
+    """``"move_base.goal"`` -> ``"move_base/goal"``; NgsiEncodingError when the name cannot be a topic."""
+    if not isinstance(attribute, str):
+        raise NgsiEncodingError("attribute name must be a str, got %s" % type(attribute).__name__)
+    segments = attribute.split(".")
+    if not all(_NAME_SEGMENT_RE.match(segment) for segment in segments):
+        raise NgsiEncodingError("attribute name %r does not name a topic (dot-separated ROS name segments)"
+                                % attribute)
+    return "/".join(segments)
+
+
 def topic_to_attribute(robot, topic):
     """``("robot1", "/robot1/move_base/goal")`` -> ``"move_base.goal"``; the topic must be in the robot's namespace."""
     _check_robot(robot)
@@ -212,22 +242,29 @@ def topic_to_attribute(robot, topic):
     full = topic if topic.startswith("/") else "/" + topic
     if not full.startswith(prefix):
         raise NgsiEncodingError("topic %r is not in the namespace of robot %r" % (topic, robot))
-    segments = full[len(prefix):].split("/")
-    if not all(_NAME_SEGMENT_RE.match(segment) for segment in segments):
-        raise NgsiEncodingError("topic %r is not a valid ROS topic name" % topic)
-    return ".".join(segments)
+    return relative_topic_to_attribute(full[len(prefix):])
 
 
 def attribute_to_topic(robot, attribute):
     """``("robot1", "move_base.goal")`` -> ``"/robot1/move_base/goal"``."""
     _check_robot(robot)
-    if not isinstance(attribute, str):
-        raise NgsiEncodingError("attribute name must be a str, got %s" % type(attribute).__name__)
-    segments = attribute.split(".")
-    if not all(_NAME_SEGMENT_RE.match(segment) for segment in segments):
-        raise NgsiEncodingError("attribute name %r does not name a topic (dot-separated ROS name segments)"
-                                % attribute)
-    return "/%s/%s" % (robot, "/".join(segments))
+    return "/%s/%s" % (robot, attribute_to_relative_topic(attribute))
+
+
+def ld_entity_id(entity_type, robot):
+    """NGSI-LD: the entity id of a robot, a URN: ``("ROBOT", "robot1")`` -> ``"urn:ngsi-ld:ROBOT:robot1"``."""
+    _check_robot(robot)
+    return "%s%s:%s" % (LD_ID_PREFIX, entity_type, robot)
+
+
+def robot_from_ld_entity_id(entity_id, entity_type):
+    """The robot name in ``urn:ngsi-ld:<entity_type>:<robot>``; NgsiEncodingError for any other id."""
+    prefix = "%s%s:" % (LD_ID_PREFIX, entity_type)
+    if not isinstance(entity_id, str) or not entity_id.startswith(prefix):
+        raise NgsiEncodingError("entity id %r is not of the form %s<robot>" % (entity_id, prefix))
+    robot = entity_id[len(prefix):]
+    _check_robot(robot)
+    return robot
 
 
 def message_type_to_attribute_type(message_type):

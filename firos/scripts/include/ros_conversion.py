@@ -61,6 +61,8 @@ import re
 import genpy
 import genpy.message
 
+from include.ngsi_encoding import NgsiEncodingError, attribute_type_to_message_type
+
 __all__ = ["ConversionError", "message_to_dict", "dict_to_message", "load_message_class"]
 
 
@@ -118,9 +120,6 @@ _NONFINITE_FROM_JSON = {
 
 # A field type: base type, then optionally "[]" (variable array) or "[N]" (fixed array).
 _FIELD_TYPE_RE = re.compile(r"^([^\[\]]+)(?:\[(\d*)\])?$")
-# A message type name as load_message_class accepts it, and its Python form.
-_MESSAGE_TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)/([A-Za-z][A-Za-z0-9_]*)$")
-_PYTHON_TYPE_RE = re.compile(r"^([A-Za-z][A-Za-z0-9_]*)\.msg\.([A-Za-z][A-Za-z0-9_]*)$")
 
 
 def _kind_of(base_type):
@@ -191,22 +190,21 @@ def _find_message_class(type_name):
     if not isinstance(type_name, str):
         raise ConversionError(_type_name(type_name), "", "a message type must be a str like 'pkg/Type'")
     type_name = _TYPE_ALIASES.get(type_name, type_name)
-    python_form = _PYTHON_TYPE_RE.match(type_name)
-    if python_form is not None:
-        type_name = "%s/%s" % python_form.groups()
-    match = _MESSAGE_TYPE_RE.match(type_name)
-    if match is None:
-        raise ConversionError(type_name, "", "not a message type name (expected 'pkg/Type')")
-    if not _has_msg_subpackage(match.group(1)):
+    try:
+        type_name = attribute_type_to_message_type(type_name)   # the naming rules are ngsi_encoding's
+    except NgsiEncodingError:
+        raise ConversionError(type_name, "", "not a message type name (expected 'pkg/Type')") from None
+    package, name = type_name.split("/")
+    if not _has_msg_subpackage(package):
         raise ConversionError(type_name, "", "unknown message type: no ROS package %r with messages is installed"
-                              % match.group(1))
+                              % package)
     try:
         cls = genpy.message.get_message_class(type_name)
     except (ImportError, ValueError, AttributeError, SyntaxError) as exc:
         raise ConversionError(type_name, "", "cannot load message class: %s" % exc) from None
     if cls is None or getattr(cls, "_type", None) != type_name:
         raise ConversionError(type_name, "", "unknown message type: package %r has no message %r"
-                              % (match.group(1), match.group(2)))
+                              % (package, name))
     return cls
 
 

@@ -15,7 +15,7 @@ import threading
 import time
 
 from include.ngsi_client import COMMAND, BrokerError, BrokerUnavailable
-from include.ngsi_encoding import NgsiEncodingError, with_firosstamp
+from include.ngsi_encoding import FIROSSTAMP, NgsiEncodingError, split_firosstamp, with_firosstamp
 from include.ros_conversion import ConversionError, message_to_dict
 
 log = logging.getLogger("firos.sender")
@@ -88,6 +88,25 @@ class Sender:
             self._ops.append(("delete", robot))
             self._cond.notify()
 
+    def forget(self, robot, attr):
+        """robot.attr is no longer mapped: drop its waiting value and send it no more."""
+        with self._cond:
+            if self._pending.pop((robot, attr), None) is not None:
+                self.stats["skipped"] += 1
+            self._last_values.get(robot, {}).pop(attr, None)
+
+    def command_taken(self, robot):
+        """FIROS published a command of ``robot``: write COMMAND back to [] (unless an update of FIROS's own
+        that rewrites COMMAND anyway is waiting), so that a notification the broker sends later without a new
+        update (a renewal, a change of another attribute) names no command."""
+        with self._cond:
+            if robot not in self._robots or ("ack", robot) in self._ops:
+                return
+            if any(key[0] == robot for key in self._pending):
+                return
+            self._ops.append(("ack", robot))
+            self._cond.notify()
+
     def recreate(self, robot):
         """Send the robot's entity again with its newest values (the broker lost it)."""
         with self._cond:
@@ -97,10 +116,11 @@ class Sender:
 
     def is_own(self, robot, attr, value):
         """True when ``value`` carries a firosstamp that FIROS itself sent for robot.attr."""
-        if not isinstance(value, dict) or "firosstamp" not in value:
+        if not isinstance(value, dict) or FIROSSTAMP not in value:
             return False
+        _, stamp = split_firosstamp(value)
         with self._cond:
-            return value["firosstamp"] in self._own_stamps.get((robot, attr), ())
+            return stamp is not None and stamp in self._own_stamps.get((robot, attr), ())
 
     def broker_up(self):
         with self._cond:
@@ -174,7 +194,13 @@ class Sender:
     def _do_op(self, op):
         kind, robot = op
         try:
-            if kind == "create":
+            if kind == "ack":
+                with self._cond:
+                    if robot not in self._robots or not self._robots[robot]["created"]:
+                        return
+                self.client.update({robot: {COMMAND: (COMMAND, [])}})
+                self._broker_answered()
+            elif kind == "create":
                 with self._cond:
                     state = self._robots.get(robot)
                     if state is None:

@@ -14,7 +14,7 @@ import time
 import rosgraph
 import rospy
 
-from include.discovery import python_type
+from include.ngsi_encoding import message_type_to_attribute_type
 from include.ros_conversion import load_message_class
 
 log = logging.getLogger("firos.topics")
@@ -64,10 +64,13 @@ class TopicHandler:
     def subscribe(self, robot, info):
         """Forward messages of ``info`` (a TopicInfo) to the broker as attribute ``info.attribute``."""
         with self._lock:
-            if info.name in self._subscribers.get(robot, {}):
+            current = self._subscribers.get(robot, {}).get(info.name)
+            if current is not None and current.type == info.msg_type:
                 return False
+        if current is not None:
+            self.unsubscribe(robot, info.name)       # the topic changed type: subscribe with the new one
         cls = load_message_class(info.msg_type)
-        attr, atype = info.attribute, python_type(info.msg_type)
+        attr, atype = info.attribute, message_type_to_attribute_type(info.msg_type)
         offer = self.sender.offer
 
         def callback(msg):
@@ -105,6 +108,21 @@ class TopicHandler:
         if fresh and known_subscribers:
             wait_for_subscribers(pub, topic)
         pub.publish(msg)
+
+    def unsubscribe(self, robot, topic):
+        """Stop forwarding ``topic`` of ``robot`` (no-op when FIROS does not subscribe to it)."""
+        with self._lock:
+            sub = self._subscribers.get(robot, {}).pop(topic, None)
+        if sub is not None:
+            sub.unregister()
+            log.info("no longer forwarding %s of %s", topic, robot)
+
+    def drop_publisher(self, topic):
+        """Remove FIROS's Publisher of ``topic`` (a later command creates it again, with the type it names)."""
+        with self._lock:
+            entry = self._publishers.pop(topic, None)
+        if entry is not None:
+            entry[1].unregister()
 
     def drop_robot(self, robot):
         with self._lock:
