@@ -1,0 +1,228 @@
+"""bridge.Firos alone, its collaborators faked (no ROS master, no broker): connecting from a graph snapshot, what a
+notification publishes (every command, repeats included; FIROS's own values and unmapped names never), COMMAND
+written back once a command is taken, whitelist edits on robots already mapped, a topic changing type, and the
+NGSI-LD entity ids.
+"""
+
+import os
+import sys
+
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(ROOT, "firos", "scripts"))
+
+from include.bridge import ApiError, Firos  # noqa: E402
+from include.config import Settings  # noqa: E402
+from include.ngsi_client import NgsiClient  # noqa: E402
+from include.whitelist import Whitelist  # noqa: E402
+
+
+class FakeSender:
+    def __init__(self):
+        self.calls = []
+        self.own = set()
+
+    def create(self, robot, static):
+        self.calls.append(("create", robot))
+
+    def delete(self, robot):
+        self.calls.append(("delete", robot))
+
+    def forget(self, robot, attr):
+        self.calls.append(("forget", robot, attr))
+
+    def command_taken(self, robot):
+        self.calls.append(("taken", robot))
+
+    def recreate(self, robot):
+        self.calls.append(("recreate", robot))
+
+    def is_own(self, robot, attr, value):
+        return isinstance(value, dict) and (robot, attr, value.get("firosstamp")) in self.own
+
+
+class FakeSubscriptions:
+    def __init__(self):
+        self.wanted = {}
+
+    def set(self, robot, attrs):
+        self.wanted[robot] = list(attrs)
+
+    def remove(self, robot):
+        self.wanted.pop(robot, None)
+
+
+class FakeTopics:
+    def __init__(self):
+        self.subscribed = {}          # topic -> type
+        self.published = []           # (topic, type, msg)
+        self.publishers_dropped = []
+
+    def subscribe(self, robot, info):
+        if self.subscribed.get(info.name) == info.msg_type:
+            return False
+        self.subscribed[info.name] = info.msg_type
+        return True
+
+    def unsubscribe(self, robot, topic):
+        self.subscribed.pop(topic, None)
+
+    def drop_publisher(self, topic):
+        self.publishers_dropped.append(topic)
+
+    def publish(self, robot, topic, msg_type, msg, known):
+        self.published.append((topic, msg_type, msg))
+
+    def drop_robot(self, robot):
+        for topic in [t for t in self.subscribed if t.startswith(f"/{robot}/")]:
+            del self.subscribed[topic]
+
+
+class FakeGraph:
+    def __init__(self, topics):
+        self.graph = topics
+
+    def topics(self):
+        return dict(self.graph)
+
+
+def make(version="v2", whitelist=None, graph=None):
+    settings = Settings(config_dir="/nowhere", environment="test", broker_address="127.0.0.1",
+                        ngsi_version=version)
+    wl = Whitelist("/nowhere/whitelist.json", whitelist or {
+        "bot": {"publisher": ["cmd", "go"], "subscriber": ["pose", "odom"]}})
+    graph = FakeGraph(graph if graph is not None else {
+        "/bot/pose": ("geometry_msgs/Pose2D", True, False),
+        "/bot/odom": ("geometry_msgs/Pose2D", True, False),
+        "/bot/cmd": ("std_msgs/String", False, True)})
+    firos = Firos(settings, wl, {}, FakeSender(), FakeSubscriptions(), FakeTopics(), graph, NgsiClient(settings))
+    firos.scan()
+    return firos
+
+
+def v2_note(robot, command, **attrs):
+    entity = {"id": robot, "type": "ROBOT", "COMMAND": {"type": "COMMAND", "value": command, "metadata": {}}}
+    for name, (atype, value) in attrs.items():
+        entity[name] = {"type": atype, "value": value, "metadata": {}}
+    return {"subscriptionId": "s", "data": [entity]}
+
+
+def ld_note(robot, command, **attrs):
+    entity = {"id": f"urn:ngsi-ld:ROBOT:{robot}", "type": "ROBOT",
+              "COMMAND": {"type": "Property", "value": command}}
+    for name, (atype, value) in attrs.items():
+        entity[name] = {"type": "Property", "value": value, "messageType": {"type": "Property", "value": atype}}
+    return {"id": "urn:ngsi-ld:Notification:1", "type": "Notification", "subscriptionId": "urn:ngsi-ld:Subscription:1",
+            "notifiedAt": "2026-01-01T00:00:00.000Z", "data": [entity]}
+
+
+def test_connect_maps_whitelisted_topics_and_subscribes_to_publisher_attributes():
+    firos = make()
+    assert set(firos.robots) == {"bot"}
+    assert firos.topics.subscribed == {"/bot/pose": "geometry_msgs/Pose2D", "/bot/odom": "geometry_msgs/Pose2D"}
+    assert firos.subscriptions.wanted == {"bot": ["cmd", "go"]}
+    assert ("create", "bot") in firos.sender.calls
+
+
+@pytest.mark.parametrize("version,note", [("v2", v2_note), ("ld", ld_note)])
+def test_the_same_command_twice_is_published_twice_and_taken_each_time(version, note):
+    firos = make(version)
+    body = note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "forward 1 m"}))
+    assert firos.handle_notification(body) == {"bot": ["cmd"]}
+    assert firos.handle_notification(body) == {"bot": ["cmd"]}
+    assert [(t, m.data) for t, _, m in firos.topics.published] == [("/bot/cmd", "forward 1 m")] * 2
+    assert firos.sender.calls.count(("taken", "bot")) == 2
+
+
+def test_what_comes_back_without_a_command_is_not_published():
+    firos = make()
+    # after FIROS took the command, the broker holds COMMAND [] (or FIROS's own list): a renewal re-sends that
+    assert firos.handle_notification(v2_note("bot", [], cmd=("std_msgs.msg.String", {"data": "x"}))) == {}
+    assert firos.handle_notification(v2_note("bot", ["pose"], pose=("geometry_msgs.msg.Pose2D", {"x": 1.0}))) == {}
+    # FIROS's own value coming back
+    firos.sender.own.add(("bot", "cmd", 12.5))
+    own = v2_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"firosstamp": 12.5, "data": "mine"}))
+    assert firos.handle_notification(own) == {}
+    # names that are not topics, unknown robots
+    assert firos.handle_notification(v2_note("bot", ["a..b"], **{"a..b": ("std_msgs.msg.String", {})})) == {}
+    assert firos.handle_notification(v2_note("nobody", ["cmd"], cmd=("std_msgs.msg.String", {}))) == {}
+    assert firos.topics.published == [] and ("taken", "bot") not in firos.sender.calls
+
+
+def test_a_plain_whitelist_name_is_commanded_with_the_type_the_broker_names():
+    firos = make()
+    published = firos.handle_notification(v2_note("bot", ["go"], go=("std_msgs.msg.Int32", {"data": 3})))
+    assert published == {"bot": ["go"]} and firos.topics.published[0][:2] == ("/bot/go", "std_msgs/Int32")
+    with pytest.raises(ApiError) as info:
+        firos.handle_notification(v2_note("bot", ["go"], go=("Text", {"data": 3})))
+    assert info.value.status == 400
+
+
+def test_a_bad_value_publishes_nothing_of_the_notification():
+    firos = make()
+    body = v2_note("bot", ["go", "cmd"], go=("std_msgs.msg.Int32", {"data": 3}),
+                   cmd=("std_msgs.msg.String", {"data": 5}))
+    with pytest.raises(ApiError) as info:
+        firos.handle_notification(body)
+    assert info.value.status == 400 and "cmd" in info.value.reason and firos.topics.published == []
+
+
+@pytest.mark.parametrize("body", [
+    {"data": []}, {"type": "Notification"}, {"type": "Notification", "data": {}},
+    {"type": "Notification", "data": [{"type": "ROBOT"}]},
+    {"type": "Notification", "data": [{"id": "urn:ngsi-ld:ROBOT:bot", "cmd": 5}]},
+    {"type": "Notification", "data": [{"id": "urn:ngsi-ld:ROBOT:bot", "cmd": {"value": 5}}]},
+    {"type": "Notification", "data": [{"id": "urn:ngsi-ld:ROBOT:bot", "cmd": {"type": "Property"}}]},
+    {"type": "Notification", "data": [{"id": "urn:ngsi-ld:ROBOT:bot", "r": {"type": "Relationship"}}]},
+])
+def test_malformed_ld_notifications_are_400(body):
+    firos = make("ld")
+    with pytest.raises(ApiError) as info:
+        firos.handle_notification(body)
+    assert info.value.status == 400 and info.value.reason
+
+
+def test_whitelist_remove_and_write_take_effect_on_a_mapped_robot():
+    firos = make()
+    firos.whitelist_remove({"bot": {"subscriber": ["odom"], "publisher": ["cmd"]}})
+    assert "/bot/odom" not in firos.topics.subscribed and "/bot/pose" in firos.topics.subscribed
+    assert ("forget", "bot", "odom") in firos.sender.calls
+    assert "/bot/cmd" in firos.topics.publishers_dropped
+    assert set(firos.robots["bot"].topics) == {"pose"}
+    assert firos.subscriptions.wanted == {"bot": ["go"]}
+    # a command for the removed publisher topic is no longer published
+    assert firos.handle_notification(v2_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "x"}))) == {}
+
+    firos.whitelist_write({"bot": {"subscriber": ["odom"], "publisher": ["cmd"]}})
+    assert "/bot/odom" in firos.topics.subscribed
+    assert set(firos.robots["bot"].topics) == {"pose", "odom", "cmd"}
+    assert firos.subscriptions.wanted == {"bot": ["cmd", "go"]}
+
+    # the robot's whole entry removed: it is disconnected, and comes back when allowed again
+    whitelist = firos.whitelist.snapshot()
+    firos.whitelist_remove({"bot": {}})
+    assert "bot" not in firos.robots and ("delete", "bot") in firos.sender.calls and firos.topics.subscribed == {}
+    firos.whitelist_write(whitelist)
+    assert "bot" in firos.robots and "/bot/pose" in firos.topics.subscribed
+
+
+def test_a_topic_that_changes_type_is_subscribed_again_with_the_new_type():
+    firos = make()
+    firos.graph.graph["/bot/pose"] = ("geometry_msgs/Pose", True, False)
+    firos.scan()
+    assert firos.topics.subscribed["/bot/pose"] == "geometry_msgs/Pose"
+    assert firos.robots["bot"].topics["pose"].msg_type == "geometry_msgs/Pose"
+
+
+def test_v1_and_ld_subscriptions_also_watch_command_so_that_repeats_notify():
+    assert make("v1").subscriptions.wanted == {"bot": ["COMMAND", "cmd", "go"]}
+    assert make("ld").subscriptions.wanted == {"bot": ["COMMAND", "cmd", "go"]}
+
+
+def test_ld_ids_name_the_robot_and_other_ids_are_ignored():
+    firos = make("ld")
+    assert firos.read_client.entity_id("bot") == "urn:ngsi-ld:ROBOT:bot"
+    body = ld_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "x"}))
+    body["data"][0]["id"] = "bot"
+    assert firos.handle_notification(body) == {}
