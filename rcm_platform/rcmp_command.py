@@ -38,6 +38,18 @@ class BadRequest(CommandError):
     status = 400
 
 
+class Unauthorized(CommandError):
+    """No token, or an unknown one, where the RDAPI needs one (HTTP 401)."""
+
+    status = 401
+
+
+class Forbidden(CommandError):
+    """The caller is known but may not make this call: a read token on a write, a foreign page (HTTP 403)."""
+
+    status = 403
+
+
 class NotFound(CommandError):
     """Unknown name or path (HTTP 404)."""
 
@@ -64,6 +76,12 @@ class TooLarge(CommandError):
     """The request body is over the size limit (HTTP 413)."""
 
     status = 413
+
+
+class UnsupportedMediaType(CommandError):
+    """A request body not sent as ``application/json`` (HTTP 415)."""
+
+    status = 415
 
 
 def _show(value, limit=40):

@@ -1,31 +1,156 @@
 """The RDAPI: the master's HTTP interface for users (Twisted web), master only.
 
-Owns the routes of CONTRACTS §2, JSON in and out (``{"result": "OK" | "ERROR", "reason": ...}``), CORS (``*``
-for GET, POST, OPTIONS), the request body size limit (413, the body is discarded as it arrives, never buffered),
-parsing of query strings and bodies, and the mapping of ``CommandError`` subclasses to HTTP statuses, done in one
-place (``_answer_error``). Handlers stay thin: parse, call one command of ``PlatformCommands`` /
-``ServiceCommands``, render. A client's mistake never gets a 500; an unexpected error is logged with its traceback
-and answered with a 500 whose reason says to look at the log.
+Owns the routes of CONTRACTS §2, JSON in and out (``{"result": "OK" | "ERROR", "reason": ...}``), the request
+body size limit (413, the body is discarded as it arrives, never buffered), parsing of query strings and bodies
+(``Content-Type: application/json`` only, 415 otherwise; nesting bounded), and the mapping of ``CommandError``
+subclasses to HTTP statuses, done in one place (``_answer_error``). Handlers stay thin: parse, call one command of
+``PlatformCommands`` / ``ServiceCommands``, render. A client's mistake never gets a 500; an unexpected error is
+logged with its traceback and answered with a 500 whose reason says to look at the log.
+
+Also owns who may call it (CONTRACTS §10, docs/SECURITY.md):
+- bearer tokens (``Tokens``: the SHA-256 hashes kept in the robotics data, re-read every second and whenever an
+  unknown token arrives, so ``rcmp_n token add/revoke`` takes effect while the agent runs; compared with
+  ``hmac.compare_digest``). With no token the RDAPI is open and the log says so once; with any, every call but
+  ``GET /``, ``OPTIONS`` and the console's static files needs ``Authorization: Bearer TOKEN`` (401), and writes
+  need an ``admin`` token (403);
+- CORS: any page may read; only the RDAPI's own origin and the (ext) ``allowed_origins`` may write (a POST with
+  another ``Origin`` is 403, and preflights offer it GET only);
+- the listener: HTTP or, with (ext) ``rdapi_tls_cert`` / ``rdapi_tls_key``, HTTPS through Twisted's SSL endpoint;
+  at most ``max_connections`` connections (``max_per_address`` from one address), a 503 to the rest; idle
+  connections closed after ``idle_timeout`` and a request whose headers and body take longer than
+  ``request_deadline`` dropped, so slow clients cannot hold it.
 """
 
+import hashlib
+import hmac
 import json
 import logging
+import re
+import secrets
 
-from twisted.application import internet
-from twisted.internet import defer
-from twisted.web import resource, server
+from twisted.application import service
+from twisted.internet import defer, endpoints, protocol, task, threads
+from twisted.web import http, resource, server
 
-from .rcmp_command import BadRequest, CommandError, MethodNotAllowed, NotFound, TooLarge
+from .rcmp_command import (BadRequest, CommandError, Forbidden, MethodNotAllowed, NotFound, TooLarge,
+                           Unauthorized, UnsupportedMediaType)
 
 log = logging.getLogger("rcm_platform.rdapi")
 
 MAX_BODY = 64 * 1024
+MAX_JSON_DEPTH = 8          # an RDAPI body is at most 3 deep (body, list, item); deeper ones are refused
 WELCOME = b"<html><body>Welcome to the RCM platform node server!</body></html>"
-CORS_HEADERS = (
+# CORS answers: any page may read; the RDAPI's own origin and allowed_origins may also write
+CORS_READ = (
     (b"Access-Control-Allow-Origin", b"*"),
-    (b"Access-Control-Allow-Methods", b"GET, POST, OPTIONS"),
-    (b"Access-Control-Allow-Headers", b"Content-Type"),
+    (b"Access-Control-Allow-Methods", b"GET, HEAD, OPTIONS"),
+    (b"Access-Control-Allow-Headers", b"Authorization"),
+    (b"Access-Control-Max-Age", b"600"),
+    (b"Vary", b"Origin"),
 )
+CORS_WRITE = (
+    (b"Access-Control-Allow-Methods", b"GET, HEAD, POST, OPTIONS"),
+    (b"Access-Control-Allow-Headers", b"Authorization, Content-Type"),
+    (b"Access-Control-Max-Age", b"600"),
+    (b"Vary", b"Origin"),
+)
+# paths anyone may GET without a token: the welcome page and the console's static files (issue 11)
+PUBLIC_PATHS = ("/",)
+PUBLIC_PREFIXES = ("/console/",)
+
+MAX_CONNECTIONS = 256       # open RDAPI connections at once (the agent's fd limit is at least 1024)
+MAX_PER_ADDRESS = 32        # of which from one source address
+IDLE_TIMEOUT = 60.0         # seconds a keep-alive connection may sit idle
+REQUEST_DEADLINE = 15.0     # seconds from a request's first line to its last body byte
+
+TOKEN_REFRESH = 1.0         # seconds between re-reads of the token table
+TOKEN_RE = re.compile(r"[A-Za-z0-9._~+/=-]{1,256}\Z")
+ROLES = ("read", "admin")
+
+
+# -- tokens --------------------------------------------------------------------------------------------------------
+
+def new_token():
+    """A new bearer token (256 random bits, URL-safe text) and the SHA-256 hex digest kept in its place."""
+    token = secrets.token_urlsafe(32)
+    return token, token_hash(token)
+
+
+def token_hash(token):
+    return hashlib.sha256(token.encode("utf-8")).hexdigest()
+
+
+class Tokens(service.Service):
+    """The RDAPI's tokens as last read from the robotics data (``data.tokens()``), with their roles.
+
+    Loaded when the service starts (before the listener, so the RDAPI is never open by mistake), re-read in a
+    thread every ``interval`` seconds (a revoked token stops working within that) and at once when an unknown
+    token arrives (a new token works at its first use); concurrent re-reads are one.
+    """
+
+    def __init__(self, data, reactor, interval=TOKEN_REFRESH):
+        self.data = data
+        self.reactor = reactor
+        self.interval = interval
+        self._entries = ()        # ((sha256 hex bytes, name, role), ...)
+        self._loaded = False
+        self._refreshing = None   # the Deferred of the re-read in flight
+        self._loop = None
+
+    @property
+    def required(self):
+        """True when at least one token exists: every call but the public ones needs one."""
+        return bool(self._entries)
+
+    def startService(self):
+        super().startService()
+        self._set(self.data.tokens())
+        self._loop = task.LoopingCall(self.refresh)
+        self._loop.clock = self.reactor
+        self._loop.start(self.interval, now=False)
+
+    def stopService(self):
+        if self._loop is not None and self._loop.running:
+            self._loop.stop()
+        return super().stopService()
+
+    def _set(self, rows):
+        was_open = self._loaded and not self._entries
+        self._entries = tuple((r["sha256"].encode("ascii"), r["name"], r["role"]) for r in rows)
+        if not self._entries and not was_open:
+            log.warning("the RDAPI has no tokens: anyone who can reach it may read and provision; add one with "
+                        "'rcmp_n token add NAME --role admin' (docs/SECURITY.md)")
+        elif self._entries and (was_open or not self._loaded):
+            log.info("the RDAPI needs a token (%d known)", len(self._entries))
+        self._loaded = True
+
+    def refresh(self):
+        """Re-read the tokens in a thread; a Deferred that fires (never fails) when done."""
+        if self._refreshing is None:
+            d = threads.deferToThread(self.data.tokens)
+
+            def done(rows):
+                self._refreshing = None
+                self._set(rows)
+
+            def failed(failure):
+                self._refreshing = None
+                log.warning("cannot re-read the RDAPI tokens (keeping the previous ones): %s",
+                            failure.getErrorMessage())
+            d.addCallbacks(done, failed)
+            self._refreshing = d
+        result = defer.Deferred()
+        self._refreshing.addBoth(lambda r: (result.callback(None), r)[1])
+        return result
+
+    def lookup(self, token):
+        """``(name, role)`` of ``token`` or None; every known hash is compared, in constant time each."""
+        digest = token_hash(token).encode("ascii")
+        found = None
+        for sha, name, role in self._entries:
+            if hmac.compare_digest(digest, sha):
+                found = (name, role)
+        return found
 
 
 class RdapiRequest(server.Request):
@@ -56,6 +181,23 @@ class RdapiRequest(server.Request):
         super().handleContentChunk(data)
 
 
+_TOO_DEEP = object()
+
+
+def _depth(value):
+    """How deeply ``value`` (a decoded JSON value) nests lists and objects; counted without recursion."""
+    deepest, pending = 0, [(value, 1)]
+    while pending:
+        item, level = pending.pop()
+        if isinstance(item, dict):
+            item = list(item.values())
+        if isinstance(item, list):
+            deepest = max(deepest, level)
+            if level <= MAX_JSON_DEPTH:
+                pending.extend((child, level + 1) for child in item)
+    return deepest
+
+
 class Route:
     """One path: the handler per method and the query parameters it takes (name -> required)."""
 
@@ -69,14 +211,20 @@ class Route:
 
 
 class Rdapi(resource.Resource):
-    """The whole RDAPI as one leaf resource with a table of routes."""
+    """The whole RDAPI as one leaf resource with a table of routes.
+
+    ``tokens``: a ``Tokens`` (None: the RDAPI is open); ``allowed_origins``: origins (``scheme://host[:port]``)
+    whose pages may write besides the RDAPI's own.
+    """
 
     isLeaf = True
 
-    def __init__(self, platform, service):
+    def __init__(self, platform, service, tokens=None, allowed_origins=()):
         super().__init__()
         self.platform = platform
         self.service = service
+        self.tokens = tokens
+        self.allowed_origins = frozenset(o.lower() for o in allowed_origins)
         self._encoded = {}  # (path, query) -> (the answer object, its JSON bytes)
         self.routes = {
             "/": Route({"GET": None}),
@@ -91,9 +239,70 @@ class Rdapi(resource.Resource):
                                          query={"ss_name": True}),
         }
 
-    def render(self, request):
-        for name, value in CORS_HEADERS:
+    # -- who may call ------------------------------------------------------------------------------------------
+
+    @staticmethod
+    def _own_origin(request):
+        host = request.getHeader(b"host")
+        if not host:
+            return None
+        scheme = "https" if request.isSecure() else "http"
+        return f"{scheme}://{host.decode('latin-1')}".lower()
+
+    def origin_may_write(self, request):
+        """True when the request has no ``Origin`` (not a browser page), or the page is ours or allowed."""
+        origin = request.getHeader(b"origin")
+        if origin is None:
+            return True
+        origin = origin.decode("latin-1").lower()
+        return origin in self.allowed_origins or origin == self._own_origin(request)
+
+    def _cors(self, request):
+        origin = request.getHeader(b"origin")
+        if origin is not None and self.origin_may_write(request):
+            request.setHeader(b"Access-Control-Allow-Origin", origin)
+            headers = CORS_WRITE
+        else:
+            headers = CORS_READ
+        for name, value in headers:
             request.setHeader(name, value)
+
+    @staticmethod
+    def is_public(path, method):
+        return method in ("GET", "HEAD") and (path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES))
+
+    @staticmethod
+    def _bearer(request):
+        """The token of an ``Authorization: Bearer TOKEN`` header; None without one; Unauthorized if malformed."""
+        header = request.getHeader(b"authorization")
+        if header is None:
+            return None
+        scheme, _, token = header.decode("latin-1").strip().partition(" ")
+        token = token.strip()
+        if scheme.lower() != "bearer" or not TOKEN_RE.match(token):
+            raise Unauthorized("the Authorization header must be 'Bearer TOKEN' with a token made by "
+                               "'rcmp_n token add'")
+        return token
+
+    def _authorize(self, request, method, token, refreshed):
+        """Raise Unauthorized / Forbidden unless ``token`` may make this call; None when a re-read may help."""
+        if token is None:
+            raise Unauthorized("this RDAPI needs a token: send 'Authorization: Bearer TOKEN' (tokens are made "
+                               "with 'rcmp_n token add NAME --role read|admin' on the master)")
+        found = self.tokens.lookup(token)
+        if found is None:
+            if not refreshed:
+                return None
+            raise Unauthorized("unknown or revoked token")
+        name, role = found
+        if method == "POST" and role != "admin":
+            raise Forbidden(f"the token '{name}' may only read; writes need a token with --role admin")
+        return found
+
+    # -- requests ----------------------------------------------------------------------------------------------
+
+    def render(self, request):
+        self._cors(request)
         method = request.method.decode("latin-1")
         path = request.path.decode("latin-1")
         try:
@@ -108,16 +317,56 @@ class Rdapi(resource.Resource):
             if handler_method not in route.handlers:
                 raise MethodNotAllowed(f"{path} does not take {method!r}; use {' or '.join(route.allowed)}",
                                        route.allowed)
-            if request.too_large:
-                raise TooLarge(f"the request body is larger than {request.max_body} bytes")
-            query = self._query(request, route)
-            if path == "/":
-                request.setHeader(b"Content-Type", b"text/html; charset=utf-8")
-                return WELCOME
-            body = self._body(request) if handler_method == "POST" else None
-            d = defer.maybeDeferred(route.handlers[handler_method], query, body)
+            if self.tokens is None or self.is_public(path, method):
+                return self._dispatch(request, route, method, path)
+            if not self.tokens.required:
+                # open; but a caller sending a token knows of one that may have been added since the last re-read
+                if request.getHeader(b"authorization") is None:
+                    return self._dispatch(request, route, method, path)
+                token = None
+            else:
+                token = self._bearer(request)
+                if self._authorize(request, handler_method, token, refreshed=False) is not None:
+                    return self._dispatch(request, route, method, path)
         except CommandError as exc:
             return self._answer_error(request, exc)
+        # an unknown token: perhaps one added since the last re-read
+        finished = []
+        request.notifyFinish().addBoth(finished.append)
+
+        def again(_):
+            if finished:
+                return
+            try:
+                if self.tokens.required:
+                    self._authorize(request, handler_method, self._bearer(request), refreshed=True)
+                result = self._dispatch(request, route, method, path)
+            except CommandError as exc:
+                result = self._answer_error(request, exc)
+            if result is not server.NOT_DONE_YET:
+                request.write(result)
+                request.finish()
+        self.tokens.refresh().addCallback(again)
+        return server.NOT_DONE_YET
+
+    def _dispatch(self, request, route, method, path):
+        """The call itself, once the caller may make it: bytes, or NOT_DONE_YET while the command runs."""
+        handler_method = "GET" if method == "HEAD" else method
+        if handler_method == "POST":
+            if not self.origin_may_write(request):
+                origin = request.getHeader(b"origin").decode("latin-1")
+                raise Forbidden(f"pages from {origin[:100]!r} may not write to the RDAPI (only its own origin "
+                                f"and the allowed_origins of the master's .init.cfg may)")
+        if request.too_large:
+            raise TooLarge(f"the request body is larger than {request.max_body} bytes")
+        if handler_method == "POST":
+            self._check_content_type(request)
+        query = self._query(request, route)
+        if path == "/":
+            request.setHeader(b"Content-Type", b"text/html; charset=utf-8")
+            return WELCOME
+        body = self._body(request) if handler_method == "POST" else None
+        d = defer.maybeDeferred(route.handlers[handler_method], query, body)
         finished = []
         request.notifyFinish().addBoth(finished.append)
 
@@ -152,6 +401,15 @@ class Rdapi(resource.Resource):
         return server.NOT_DONE_YET
 
     @staticmethod
+    def _check_content_type(request):
+        value = request.getHeader(b"content-type")
+        media = value.decode("latin-1").split(";", 1)[0].strip().lower() if value else ""
+        if media != "application/json":
+            shown = f"{media[:60]!r}" if media else "none"
+            raise UnsupportedMediaType(f"the request body must be sent with 'Content-Type: application/json' "
+                                       f"(this request has {shown})")
+
+    @staticmethod
     def _query(request, route):
         query = {}
         for raw_key, values in (request.args or {}).items():
@@ -183,8 +441,12 @@ class Rdapi(resource.Resource):
             raise BadRequest("the request body is not valid UTF-8") from None
         try:
             body = json.loads(text)
+        except RecursionError:
+            body = _TOO_DEEP
         except ValueError as exc:
             raise BadRequest(f"the request body is not valid JSON: {exc}") from None
+        if body is _TOO_DEEP or _depth(body) > MAX_JSON_DEPTH:
+            raise BadRequest(f"the request body is nested more than {MAX_JSON_DEPTH} levels deep")
         if not isinstance(body, dict):
             raise BadRequest("the request body must be a JSON object")
         return body
@@ -195,6 +457,10 @@ class Rdapi(resource.Resource):
             request.setHeader(b"Allow", ", ".join(exc.allowed).encode())
         if isinstance(exc, TooLarge):
             request.setHeader(b"Connection", b"close")
+        if isinstance(exc, Unauthorized):
+            request.setHeader(b"WWW-Authenticate", b'Bearer realm="rcm-platform"')
+        elif isinstance(exc, Forbidden) and "--role admin" in str(exc):
+            request.setHeader(b"WWW-Authenticate", b'Bearer realm="rcm-platform", error="insufficient_scope"')
         log.info("RDAPI %s %s: %d %s", request.method.decode("latin-1"), request.path.decode("latin-1"),
                  status, exc)
         payload = {"result": "ERROR", "reason": str(exc)}
@@ -224,19 +490,121 @@ class Rdapi(resource.Resource):
         request.finish()
 
 
+class RdapiChannel(http.HTTPChannel):
+    """An HTTP connection of the RDAPI: counted by its site, and dropped when one request takes too long.
+
+    The site's idle timeout (reset by every byte) closes silent connections; ``request_deadline`` bounds the time
+    from a request's first line (or the connection's opening) to its last body byte, which a client trickling
+    bytes would otherwise stretch for ever.
+    """
+
+    def connectionMade(self):
+        super().connectionMade()
+        self._deadline = None
+        self._arm()
+
+    def _arm(self):
+        if self._deadline is None:
+            self._deadline = self.callLater(self.site.request_deadline, self._too_slow)
+
+    def _disarm(self):
+        if self._deadline is not None and self._deadline.active():
+            self._deadline.cancel()
+        self._deadline = None
+
+    def _too_slow(self):
+        self._deadline = None
+        self.site.slow_dropped += 1
+        self.transport.abortConnection()
+
+    def lineReceived(self, line):
+        self._arm()
+        super().lineReceived(line)
+
+    def allContentReceived(self):
+        self._disarm()
+        super().allContentReceived()
+
+    def connectionLost(self, reason):
+        self._disarm()
+        self.site.channel_closed(self)
+        super().connectionLost(reason)
+
+
+class _Busy(protocol.Protocol):
+    """What a connection over the caps gets: a 503 with the usual JSON error, then the connection is closed."""
+
+    def __init__(self, reason):
+        self.reason = reason
+
+    def connectionMade(self):
+        body = json.dumps({"result": "ERROR", "reason": self.reason}, sort_keys=True).encode()
+        self.transport.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+                             b"Retry-After: 5\r\nConnection: close\r\nContent-Length: "
+                             + str(len(body)).encode() + b"\r\n\r\n" + body)
+        self.transport.loseConnection()
+
+
 class RdapiSite(server.Site):
-    """The RDAPI site: our request class, no per-request access log (errors and writes are logged instead)."""
+    """The RDAPI site: our request and channel classes, connection caps, no per-request access log."""
 
     requestFactory = RdapiRequest
     displayTracebacks = False
+    protocol = RdapiChannel
+
+    def __init__(self, resource, max_connections=MAX_CONNECTIONS, max_per_address=MAX_PER_ADDRESS,
+                 idle_timeout=IDLE_TIMEOUT, request_deadline=REQUEST_DEADLINE, **kwargs):
+        super().__init__(resource, timeout=idle_timeout, **kwargs)
+        self.max_connections = max_connections
+        self.max_per_address = max_per_address
+        self.request_deadline = request_deadline
+        self.open_channels = {}       # channel -> source address
+        self.per_address = {}         # source address -> open connections
+        self.refused = 0              # connections answered 503 for being over a cap
+        self.slow_dropped = 0         # connections dropped by the request deadline
+        self._warned = False
+
+    def buildProtocol(self, addr):
+        host = getattr(addr, "host", "?")
+        if len(self.open_channels) >= self.max_connections:
+            return self._busy(f"the RDAPI has {self.max_connections} connections open; try again shortly")
+        if self.per_address.get(host, 0) >= self.max_per_address:
+            return self._busy(f"{self.max_per_address} RDAPI connections are already open from {host}; "
+                              f"close some first")
+        channel = super().buildProtocol(addr)
+        self.open_channels[channel] = host
+        self.per_address[host] = self.per_address.get(host, 0) + 1
+        return channel
+
+    def _busy(self, reason):
+        self.refused += 1
+        if not self._warned:
+            self._warned = True
+            log.warning("RDAPI connection refused: %s (said once; see docs/SECURITY.md)", reason)
+        busy = _Busy(reason)
+        busy.factory = self
+        return busy
+
+    def channel_closed(self, channel):
+        host = self.open_channels.pop(channel, None)
+        if host is not None:
+            left = self.per_address.get(host, 1) - 1
+            if left > 0:
+                self.per_address[host] = left
+            else:
+                self.per_address.pop(host, None)
 
     def log(self, request):
         pass
 
 
-def make_site(platform, service, max_body=MAX_BODY):
-    """The Twisted site serving the RDAPI with ``PlatformCommands`` ``platform`` and ``ServiceCommands`` ``service``."""
-    site = RdapiSite(Rdapi(platform, service), timeout=120)
+def make_site(platform, service, max_body=MAX_BODY, tokens=None, allowed_origins=(), **limits):
+    """The Twisted site serving the RDAPI with ``PlatformCommands`` ``platform`` and ``ServiceCommands`` ``service``.
+
+    ``tokens``: a ``Tokens`` or None (open); ``limits``: ``max_connections``, ``max_per_address``,
+    ``idle_timeout``, ``request_deadline`` of ``RdapiSite``.
+    """
+    site = RdapiSite(Rdapi(platform, service, tokens=tokens, allowed_origins=allowed_origins), **limits)
 
     class Request(RdapiRequest):
         pass
@@ -245,6 +613,77 @@ def make_site(platform, service, max_body=MAX_BODY):
     return site
 
 
-def rdapi_service(site, port, interface):
-    """A Twisted service listening for the RDAPI on ``interface:port`` while running."""
-    return internet.TCPServer(port, site, interface=interface)
+# -- the listener --------------------------------------------------------------------------------------------------
+
+class TlsError(Exception):
+    """The RDAPI's certificate or key cannot be used; ``str()`` is one line naming the file and the problem."""
+
+
+def tls_options(cert_path, key_path):
+    """Twisted ``CertificateOptions`` from a PEM certificate (chain) file and a PEM private key file; TlsError."""
+    from OpenSSL import crypto
+    from twisted.internet import ssl
+
+    def read(path, what):
+        try:
+            with open(path, "rb") as f:
+                return f.read()
+        except OSError as exc:
+            raise TlsError(f"{path}: cannot read the RDAPI's {what}: {exc.strerror or exc}") from None
+    cert_pem, key_pem = read(cert_path, "certificate"), read(key_path, "private key")
+    blocks = re.findall(rb"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----", cert_pem, re.S)
+    if not blocks:
+        raise TlsError(f"{cert_path}: no PEM certificate in it (expected '-----BEGIN CERTIFICATE-----')")
+    try:
+        chain = [crypto.load_certificate(crypto.FILETYPE_PEM, block) for block in blocks]
+    except crypto.Error:
+        raise TlsError(f"{cert_path}: a certificate in it cannot be read (damaged PEM?)") from None
+    try:
+        key = crypto.load_privatekey(crypto.FILETYPE_PEM, key_pem)
+    except crypto.Error:
+        raise TlsError(f"{key_path}: not a PEM private key without a passphrase") from None
+    try:
+        options = ssl.CertificateOptions(privateKey=key, certificate=chain[0], extraCertChain=chain[1:])
+        options.getContext().check_privatekey()
+    except Exception:  # OpenSSL's errors are lists of library codes: say what they mean here
+        raise TlsError(f"{key_path}: this private key does not belong to the certificate in {cert_path}") from None
+    if chain[0].has_expired():
+        log.warning("the RDAPI's certificate %s has expired: clients will refuse it", cert_path)
+    return options
+
+
+def rdapi_service(site, port, interface, reactor=None, tls=None):
+    """A Twisted service listening for the RDAPI on ``interface:port`` while running; HTTPS with ``tls``
+    (``tls_options(...)``) through Twisted's SSL endpoint."""
+    if reactor is None:
+        from twisted.internet import reactor
+    if tls is None:
+        endpoint = endpoints.TCP4ServerEndpoint(reactor, port, backlog=128, interface=interface)
+    else:
+        endpoint = endpoints.SSL4ServerEndpoint(reactor, port, tls, backlog=128, interface=interface)
+    return _Listener(endpoint, site)
+
+
+class _Listener(service.Service):
+    """Listens on an endpoint while running; a port that cannot be taken raises from ``startService`` (the agent
+    stops with one line) instead of being logged later."""
+
+    def __init__(self, endpoint, factory):
+        self.endpoint = endpoint
+        self.factory = factory
+        self.port = None
+
+    def startService(self):
+        failures = []
+        self.endpoint.listen(self.factory).addCallbacks(self._listening, failures.append)
+        if failures:
+            failures[0].raiseException()
+        super().startService()
+
+    def _listening(self, port):
+        self.port = port
+
+    def stopService(self):
+        super().stopService()
+        port, self.port = self.port, None
+        return port.stopListening() if port is not None else None

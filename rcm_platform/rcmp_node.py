@@ -2,10 +2,13 @@
 
 Owns:
 - the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``, the ``vpn`` subcommand whose
-  work is ``rcmp_vpn``'s) and ``main()``;
+  work is ``rcmp_vpn``'s, and ``rcmp_n token add NAME --role read|admin`` / ``token list`` / ``token revoke
+  NAME``, which manage the RDAPI's tokens in the master's robotics data (the token is printed once; the agent
+  need not be stopped)) and ``main()``;
 - the configuration files and their validation: ``HOME/init.cfg`` (robot ``robot=yes`` or server VM
   ``robot=no``) or, when it is absent, the master's optional ``HOME/.init.cfg``; every ``[main]`` key of
-  CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses`` and ``log_max_bytes``
+  CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses``, ``log_max_bytes`` and the
+  master's ``rdapi_tls_cert`` / ``rdapi_tls_key`` (HTTPS, loaded at start) and ``allowed_origins`` (CORS)
   (``Config``, ``ConfigError``, ``load_config``); a bad value stops the agent with one line naming the file,
   the key and the problem, exit status 2;
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
@@ -25,6 +28,7 @@ import logging.handlers
 import os
 import signal
 import socket
+import sqlite3
 import sys
 
 PROG = "rcmp_n"
@@ -58,6 +62,9 @@ class Config:
     heartbeat_interval: float = 2.0    # (ext) seconds between heartbeats
     heartbeat_misses: int = 3          # (ext) missed beats before a peer is gone
     log_max_bytes: int = DEFAULT_LOG_MAX_BYTES   # (ext) size at which rcmp.log rolls over
+    rdapi_tls_cert: str | None = None  # (ext) master: PEM certificate (chain): the RDAPI speaks HTTPS
+    rdapi_tls_key: str | None = None   # (ext) master: its PEM private key
+    allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
 
 
 # -- configuration ----------------------------------------------------------------------------------------------
@@ -139,6 +146,28 @@ def _int_parser(minimum, maximum):
     return parse
 
 
+def _parse_path(value):
+    value = value.strip()
+    if not value or not os.path.isabs(value) or "\x00" in value:
+        raise ValueError(f"not an absolute file path: {value!r}")
+    return value
+
+
+def _parse_origins(value):
+    import re
+    origins = []
+    for part in value.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not re.match(r"https?://[A-Za-z0-9.-]+(:[0-9]{1,5})?\Z|https?://\[[0-9A-Fa-f:.]+\](:[0-9]{1,5})?\Z",
+                        part):
+            raise ValueError(f"not an origin (scheme://host or scheme://host:port, scheme http or https, no "
+                             f"path): {part!r}")
+        origins.append(part.lower())
+    return tuple(origins)
+
+
 # key -> (parser, roles that may set it)
 KEYS = {
     "name": (_parse_name, ("master", "robot", "server")),
@@ -155,6 +184,9 @@ KEYS = {
     "heartbeat_interval": (_parse_positive_float, ("master", "robot", "server")),
     "heartbeat_misses": (_int_parser(1, 1000), ("master", "robot", "server")),
     "log_max_bytes": (_int_parser(1024, 1024 ** 3), ("master", "robot", "server")),
+    "rdapi_tls_cert": (_parse_path, ("master",)),
+    "rdapi_tls_key": (_parse_path, ("master",)),
+    "allowed_origins": (_parse_origins, ("master",)),
 }
 
 
@@ -241,6 +273,10 @@ def load_config(home):
         if config.ext_port == config.ic_port or clash:
             raise ConfigError(f"{path or master_file}: key 'ic_port': the ports ext_port, ic_port and "
                               f"inbound_open_ports must all differ")
+    if config.role == "master" and (config.rdapi_tls_cert is None) != (config.rdapi_tls_key is None):
+        given, missing = (("rdapi_tls_cert", "rdapi_tls_key") if config.rdapi_tls_cert
+                          else ("rdapi_tls_key", "rdapi_tls_cert"))
+        raise ConfigError(f"{path}: key '{missing}': needed with '{given}' (HTTPS needs a certificate and its key)")
     if config.role != "master" and config.ip_master is None:
         address = platform_address(config)
         if address is not None:
@@ -311,7 +347,7 @@ def build_master(config, reactor, table=None):
     from twisted.application import service
     from . import rcmp_event, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
-    from .rcmp_ext_connector import make_site, rdapi_service
+    from .rcmp_ext_connector import TlsError, Tokens, make_site, rdapi_service, tls_options
     from .rcmp_platform_command import PlatformCommands
     from .rcmp_robotics_data import DataError, RoboticsData
     from .rcmp_service_command import ServiceCommands
@@ -330,14 +366,24 @@ def build_master(config, reactor, table=None):
         data.set_master(config.name, vpn, config.inbound_open_ports)
     except (DataError, CommandError) as exc:
         raise StartupError(str(exc)) from None
+    tls = None
+    if config.rdapi_tls_cert:
+        try:
+            tls = tls_options(config.rdapi_tls_cert, config.rdapi_tls_key)
+        except TlsError as exc:
+            raise StartupError(f"{where}: keys 'rdapi_tls_cert'/'rdapi_tls_key': {exc}") from None
     table = table or rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip,
                                    expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
-    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces))
+    tokens = Tokens(data, reactor)
+    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces),
+                     tokens=tokens, allowed_origins=config.allowed_origins)
     top = service.MultiService()
     agent.setServiceParent(top)
-    rdapi_service(site, config.ext_port, public_ip).setServiceParent(top)
+    tokens.setServiceParent(top)   # loaded before the listener starts: never open by mistake
+    rdapi_service(site, config.ext_port, public_ip, reactor=reactor, tls=tls).setServiceParent(top)
     top.rdapi_address = (public_ip, config.ext_port)
+    top.rdapi_scheme = "https" if tls else "http"
     return top
 
 
@@ -379,10 +425,12 @@ def parse_args(argv):
         prog=PROG,
         description="The RCM platform agent. With HOME/init.cfg it runs as a robot (robot=yes) or a server VM "
                     "(robot=no); without it, as the master (optional HOME/.init.cfg) serving the RDAPI. Runs in "
-                    "the foreground until SIGTERM or SIGINT, then stops everything it started.")
-    parser.add_argument("--home", metavar="DIR", default=os.environ.get("RCMP_HOME", DEFAULT_HOME),
-                        help="the platform folder: configuration, robotics_data.db, log/ "
-                             f"(default: $RCMP_HOME, else {DEFAULT_HOME})")
+                    "the foreground until SIGTERM or SIGINT, then stops everything it started.",
+        epilog="'rcmp_n token add NAME --role read|admin', 'rcmp_n token list' and 'rcmp_n token revoke NAME' "
+               "manage the RDAPI's bearer tokens on the master (docs/SECURITY.md).")
+    home_help = ("the platform folder: configuration, robotics_data.db, log/ "
+                 f"(default: $RCMP_HOME, else {DEFAULT_HOME})")
+    parser.add_argument("--home", metavar="DIR", default=os.environ.get("RCMP_HOME", DEFAULT_HOME), help=home_help)
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="the lowest level written to the log (default: INFO)")
     parser.add_argument("--no-stderr", action="store_true",
@@ -390,9 +438,71 @@ def parse_args(argv):
     from . import rcmp_vpn
     commands = parser.add_subparsers(dest="command", metavar="COMMAND",
                                      help="without a command, run the agent; 'vpn' manages the platform's VPN "
-                                          "('rcmp_n vpn --help')")
+                                          "('rcmp_n vpn --help'), 'token' the RDAPI's tokens ('rcmp_n token --help')")
     rcmp_vpn.add_parser(commands, DEFAULT_HOME)
+    token = commands.add_parser("token", help="manage the RDAPI's bearer tokens (master only): add, list, revoke",
+                                description="The RDAPI's bearer tokens. Once one exists, every RDAPI call but "
+                                            "GET / needs 'Authorization: Bearer TOKEN'; only a hash is kept.")
+    actions = token.add_subparsers(dest="token_command", metavar="add|list|revoke", required=True)
+    add = actions.add_parser("add", help="make a token and print it (once: only its hash is kept)")
+    add.add_argument("name", metavar="NAME", help="the token's name (a letter, then letters, digits, _)")
+    add.add_argument("--role", required=True, choices=TOKEN_ROLES,
+                     help="read: GET calls only; admin: every call")
+    actions.add_parser("list", help="list the tokens (name, role, when made)")
+    revoke = actions.add_parser("revoke", help="forget a token; the running agent refuses it within a second")
+    revoke.add_argument("name", metavar="NAME")
+    for sub in (token, add, revoke, actions.choices["list"]):
+        sub.add_argument("--home", metavar="DIR", default=argparse.SUPPRESS, help=home_help)
     return parser.parse_args(argv)
+
+
+TOKEN_ROLES = ("read", "admin")
+
+
+def token_command(args):
+    """``rcmp_n token add|list|revoke``: the RDAPI's tokens in HOME/robotics_data.db; returns the exit status."""
+    from .rcmp_command import CommandError, validate_name
+    from .rcmp_ext_connector import new_token
+    from .rcmp_robotics_data import DataError, RoboticsData
+    try:
+        config = load_config(args.home)
+    except ConfigError as exc:
+        return _fail(str(exc), 2)
+    if config.role != "master":
+        return _fail(f"{config.config_file}: this is a robot's or server VM's folder; RDAPI tokens belong to the "
+                     f"master", 2)
+    os.umask(0o027)  # a new robotics_data.db is not readable by others
+    try:
+        data = RoboticsData(os.path.join(config.home, "robotics_data.db"), forget_live_state=False)
+    except (DataError, sqlite3.Error) as exc:
+        return _fail(str(exc).splitlines()[0], 1)
+    try:
+        if args.token_command == "add":
+            name = validate_name(args.name, "NAME")
+            token, digest = new_token()
+            data.add_token(name, args.role, digest)
+            sys.stdout.write(token + "\n")
+            sys.stderr.write(f"{PROG}: token '{name}' ({args.role}) added; it is shown only this once: send it as "
+                             f"'Authorization: Bearer TOKEN'\n")
+        elif args.token_command == "list":
+            rows = data.tokens()
+            if not rows:
+                sys.stdout.write("no tokens: the RDAPI is open to anyone who can reach it\n")
+            for row in rows:
+                sys.stdout.write(f"{row['name']}\t{row['role']}\t{row['created']} UTC\n")
+        else:
+            name = validate_name(args.name, "NAME")
+            data.revoke_token(name)
+            left = len(data.tokens())
+            sys.stderr.write(f"{PROG}: token '{name}' revoked" +
+                             ("" if left else "; no token is left, so the RDAPI is open again") + "\n")
+    except CommandError as exc:
+        return _fail(str(exc), 2 if exc.status == 400 else 1)
+    except sqlite3.Error as exc:
+        return _fail(f"{data.path}: {exc}", 1)
+    finally:
+        data.close()
+    return 0
 
 
 def _log_to_file_only(message):
@@ -415,6 +525,8 @@ def main(argv=None):
     if args.command == "vpn":
         from . import rcmp_vpn
         return rcmp_vpn.run(args)
+    if args.command == "token":
+        return token_command(args)
     try:
         config = load_config(args.home)
     except ConfigError as exc:
@@ -457,7 +569,7 @@ def main(argv=None):
                 pass
             return
         where = getattr(top, "rdapi_address", None)
-        rdapi = f", RDAPI on http://{where[0]}:{where[1]}/" if where else ""
+        rdapi = f", RDAPI on {top.rdapi_scheme}://{where[0]}:{where[1]}/" if where else ""
         log.info("rcmp_n started as %s '%s' in %s%s", config.role, config.name, config.home, rdapi)
 
     def stop():

@@ -10,6 +10,11 @@ Access is synchronous and thread-safe: one connection guarded by one lock; every
 a service logic behind. Callers on the reactor thread wrap calls with ``deferToThread``. ``generation`` counts
 committed writes; readers that cache answers (``rcmp_command.ReadCache``) compare it to know their copy is current.
 Names are validated by ``rcmp_command`` before they get here.
+
+Also holds the RDAPI's bearer tokens (table ``rdapi_token``: name, role, SHA-256 of the token, never the token
+itself), written by ``rcmp_n token ...`` through its own connection while the agent may be running; the agent
+re-reads them (``tokens()``) to see such changes. Schema version 2 added that table; a version 1 file is
+migrated in place when opened.
 """
 
 import datetime
@@ -18,7 +23,16 @@ import threading
 
 from .rcmp_command import Conflict, NotFound
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+
+TOKEN_TABLE = """
+CREATE TABLE rdapi_token (
+    name TEXT PRIMARY KEY,
+    role TEXT NOT NULL CHECK (role IN ('read', 'admin')),
+    sha256 TEXT NOT NULL UNIQUE,
+    created TEXT NOT NULL
+);
+"""
 
 SCHEMA = """
 CREATE TABLE schema_version (
@@ -70,7 +84,11 @@ CREATE TABLE service_space (
     inbound_port INTEGER,
     created TEXT NOT NULL
 );
-"""
+""" + TOKEN_TABLE
+
+# version -> the statements that bring a file of that version to the next one
+MIGRATIONS = {1: TOKEN_TABLE}
+TOKEN_ROLES = ("read", "admin")
 
 # Written on first start only: a user may remove them and they stay removed.
 DEFAULT_SERVICE_LOGICS = [
@@ -97,8 +115,9 @@ def _now():
 class RoboticsData:
     """The master's SQLite database. Every method may be called from any thread."""
 
-    def __init__(self, path):
+    def __init__(self, path, forget_live_state=True):
         self.path = path
+        self._forget_live_state = forget_live_state
         self.generation = 0
         self._lock = threading.Lock()
         try:
@@ -127,12 +146,19 @@ class RoboticsData:
             else:
                 row = self._db.execute("SELECT max(version) FROM schema_version").fetchone()
                 version = row[0] if row else None
+                while version in MIGRATIONS:
+                    for statement in MIGRATIONS[version].split(";"):
+                        if statement.strip():
+                            self._db.execute(statement)
+                    version += 1
+                    self._db.execute("DELETE FROM schema_version")
+                    self._db.execute("INSERT INTO schema_version (version) VALUES (?)", (version,))
                 if version != SCHEMA_VERSION:
                     raise DataError(f"{self.path}: schema version {version} is not the supported version "
                                     f"{SCHEMA_VERSION}")
-            # live state of a previous life of the agent
-            self._db.execute("DELETE FROM service_space")
-            self._db.execute("DELETE FROM connection")
+            if self._forget_live_state:  # live state of a previous life of the agent
+                self._db.execute("DELETE FROM service_space")
+                self._db.execute("DELETE FROM connection")
             self._db.execute("COMMIT")
         except BaseException:
             self._db.execute("ROLLBACK")
@@ -345,3 +371,31 @@ class RoboticsData:
     def integrity_check(self):
         """SQLite's own check of the file: ``"ok"`` when it is sound."""
         return self._read(lambda: self._db.execute("PRAGMA integrity_check").fetchone()[0])
+
+    # -- RDAPI tokens ------------------------------------------------------------------------------------------
+
+    def add_token(self, name, role, sha256):
+        """Keep a new token's hash under ``name`` with ``role`` (read | admin); Conflict if the name is taken."""
+        if role not in TOKEN_ROLES:
+            raise ValueError(f"unknown token role {role!r}")
+
+        def write():
+            if self._db.execute("SELECT 1 FROM rdapi_token WHERE name = ?", (name,)).fetchone():
+                raise Conflict(f"a token named '{name}' already exists (revoke it first to replace it)")
+            self._db.execute("INSERT INTO rdapi_token (name, role, sha256, created) VALUES (?, ?, ?, ?)",
+                             (name, role, sha256, _now()))
+        self._write(write)
+
+    def revoke_token(self, name):
+        """Forget the token ``name``; NotFound if there is none."""
+        def write():
+            if self._db.execute("DELETE FROM rdapi_token WHERE name = ?", (name,)).rowcount == 0:
+                raise NotFound(f"there is no token named '{name}'")
+        self._write(write)
+
+    def tokens(self):
+        """Every token as ``{"name", "role", "sha256", "created"}``, oldest first."""
+        def read():
+            rows = self._db.execute("SELECT name, role, sha256, created FROM rdapi_token ORDER BY rowid").fetchall()
+            return [dict(zip(("name", "role", "sha256", "created"), r)) for r in rows]
+        return self._read(read)

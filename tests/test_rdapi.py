@@ -148,25 +148,35 @@ def test_every_call_and_its_answers(master):
 
 
 def test_cors_options_and_content_types(master):
+    # without an Origin (curl, scripts) the answers carry the read-only CORS headers; writes from foreign pages
+    # are tested in test_rdapi_security.py
     for path in ("/", "/platform_instance/read", "/service_logic/provisioning"):
         status, _, headers = master.request("OPTIONS", path)
         assert status == 204
         assert headers["allow"] == ("GET, OPTIONS" if path.endswith("read") or path == "/" else "POST, OPTIONS")
         assert headers["access-control-allow-origin"] == "*"
-        assert set(headers["access-control-allow-methods"].replace(" ", "").split(",")) == {"GET", "POST",
+        assert set(headers["access-control-allow-methods"].replace(" ", "").split(",")) == {"GET", "HEAD",
                                                                                              "OPTIONS"}
     status, _, headers = master.request("GET", "/platform_instance/read")
     assert status == 200 and headers["access-control-allow-origin"] == "*"
     assert headers["content-type"] == "application/json"
-    status, _, headers = master.request("POST", "/platform_instance/provisioning", b"{}")
+    status, _, headers = master.request("POST", "/platform_instance/provisioning", b"{}",
+                                        {"Content-Type": "application/json"})
     assert status == 400 and headers["access-control-allow-origin"] == "*"
-    # no Content-Type, or another one: accepted
-    assert master.request("POST", "/service_logic/provisioning", b'{"slg_name": "a1"}')[0] == 200
+    # application/json, with or without parameters, in any case; nothing else (415, as Orion answers)
+    assert master.request("POST", "/service_logic/provisioning", b'{"slg_name": "a1"}',
+                          {"Content-Type": "application/json; charset=utf-8"})[0] == 200
     assert master.request("POST", "/service_logic/provisioning", b'{"slg_name": "a2"}',
-                          {"Content-Type": "text/plain"})[0] == 200
+                          {"Content-Type": "Application/JSON"})[0] == 200
+    for headers in ({}, {"Content-Type": "text/plain"}, {"Content-Type": "application/x-www-form-urlencoded"},
+                    {"Content-Type": "application/jsonp"}):
+        status, answer, _ = master.request("POST", "/service_logic/provisioning", b'{"slg_name": "a9"}', headers)
+        assert status == 415 and answer["result"] == "ERROR" and "application/json" in answer["reason"], answer
+    assert master.get("/service_logic/read?slg_name=a9")[0] == 404
     # a trailing newline, as curl -d @file sends, and UTF-8 unicode inside a param
     status, answer, _ = master.request("POST", "/service_logic/provisioning", json.dumps(
-        {"slg_name": "a3", "sn_list": [dict(NODE, sn_params="msg:=\u00e9t\u00e9")]}).encode() + b"\n")
+        {"slg_name": "a3", "sn_list": [dict(NODE, sn_params="msg:=\u00e9t\u00e9")]}).encode() + b"\n",
+        {"Content-Type": "application/json"})
     assert status == 200, answer
     # HEAD behaves as GET without a body
     status, body, _ = master.request("HEAD", "/platform_instance/read")

@@ -149,6 +149,7 @@ class ResourceTests(DataTestCase):
         if body is not None:
             from io import BytesIO
             request.content = BytesIO(body)
+            request.requestHeaders.setRawHeaders(b"content-type", [b"application/json"])
         result = self.resource.render(request)
         if isinstance(result, bytes):
             request.write(result)

@@ -17,6 +17,9 @@ from tests.support.rcmp_agent import RcmpAgent
 ITEMS = 6
 
 
+JSON = {"Content-Type": "application/json"}
+
+
 def service_logic(i):
     nodes = [{"sn_package": "pkg", "sn_type": "node.py", "sn_name": f"n{j}", "sn_params": f"--index {j}",
               "sn_side": "S" if j % 2 else "R"} for j in range(ITEMS)]
@@ -30,11 +33,11 @@ def writer(agent, start, step, acknowledged, stop):
     while not stop.is_set():
         try:
             conn = http.client.HTTPConnection(agent.host, agent.ext_port, timeout=5)
-            conn.request("POST", "/service_logic/provisioning", json.dumps(service_logic(i)))
+            conn.request("POST", "/service_logic/provisioning", json.dumps(service_logic(i)), JSON)
             if conn.getresponse().status == 200:
                 acknowledged.append(("sl", i))
             conn.request("POST", "/platform_instance/provisioning",
-                         json.dumps({"pi_name": f"robot_{i}", "pi_service_logic": f"burst_{i}"}))
+                         json.dumps({"pi_name": f"robot_{i}", "pi_service_logic": f"burst_{i}"}), JSON)
             if conn.getresponse().status == 200:
                 acknowledged.append(("pi", i))
             conn.close()

@@ -195,7 +195,7 @@ def test_sqlite3_cli_shows_readable_tables(data, path):
     tables = subprocess.run(["/usr/bin/sqlite3", "-readonly", path, ".tables"], capture_output=True, text=True,
                             timeout=30, check=True).stdout.split()
     assert set(tables) == {"schema_version", "service_logic", "service_node", "service_launcher",
-                           "platform_instance", "connection", "service_space"}
+                           "platform_instance", "connection", "service_space", "rdapi_token"}
     rows = subprocess.run(["/usr/bin/sqlite3", "-readonly", "-header", path,
                            "SELECT pi_name, slg_name, is_master, address, inbound_open_ports FROM platform_instance"],
                           capture_output=True, text=True, timeout=30, check=True).stdout.splitlines()
