@@ -3,7 +3,8 @@
 Owns ``CommandError`` and its subclasses (each carries the HTTP status the RDAPI answers with and a sentence naming
 the problem), the rules for names (ROS graph names without slashes: a letter, then letters, digits and
 underscores, at most 64 characters), the validation of service nodes and service launchers, and the splitting of
-params as a shell would split them (``shlex.split``; no shell ever runs them).
+params as a shell would split them (``shlex.split``; no shell ever runs them) and the rules of what params may
+hold (``check_params``: a launcher's only ``arg:=value``; no item's the ROS specials that redirect a process).
 
 Also owns ``ReadCache``: the answers of the read commands kept in memory until the robotics data changes (see
 ``RoboticsData.generation``), so that reads do not go to SQLite (and to a thread) while nothing changed.
@@ -137,6 +138,28 @@ def split_params(value, field="params"):
         raise BadRequest(f"'{field}' cannot be split into arguments: {exc}") from None
 
 
+# ROS's special arguments that would redirect a process: where it logs, which master, which address it uses
+ROS_SPECIALS = ("__log:=", "__master:=", "__ip:=", "__hostname:=")
+LAUNCH_ARG_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*:=", re.S)
+
+
+def check_params(words, field, launcher):
+    """Refuse params that would become options or files of our tools (CONTRACTS §10): BadRequest naming the word.
+
+    In any item, the ROS specials of ``ROS_SPECIALS``; in a launcher, anything but ``arg:=value`` words (no
+    roslaunch option such as ``--pid=FILE``, no extra launch file). A node's other words are its own program's.
+    """
+    for word in words:
+        for special in ROS_SPECIALS:
+            if word.startswith(special):
+                raise BadRequest(f"'{field}' must not set the ROS special argument {special!r}: it would redirect "
+                                 f"the process (its log file, ROS master or address); see docs/RDAPI.md")
+        if launcher and not LAUNCH_ARG_RE.match(word):
+            raise BadRequest(f"'{field}' may hold only arg:=value words for roslaunch (an arg name is a letter, "
+                             f"then letters, digits and _); {_show(word)} is not one")
+    return words
+
+
 def _check_fields(item, where, required, optional):
     if not isinstance(item, dict):
         raise BadRequest(f"{where} must be a JSON object, not {_json_type(item)}")
@@ -168,7 +191,8 @@ def validate_service_item(list_field, item, index=0):
     _check_fields(item, where, tuple(f for f, _, _ in tokens) + (name_field, side_field), (params_field,))
     params = item.get(params_field)
     params = "" if params is None else params
-    split_params(params, f"{where}.{params_field}")
+    check_params(split_params(params, f"{where}.{params_field}"), f"{where}.{params_field}",
+                 launcher=list_field == "sl_list")
     result = {field: _validate_token(item[field], f"{where}.{field}", pattern, what)
               for field, pattern, what in tokens}
     result[name_field] = validate_name(item[name_field], f"{where}.{name_field}")

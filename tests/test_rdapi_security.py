@@ -358,3 +358,42 @@ def test_connections_from_one_address_are_capped(master):
             sock.close()
     wait_until(lambda: master.get("/platform_instance/read")[0] == 200, timeout=10,
                message="the address to be served again once its connections closed")
+
+
+# -- row 2: params that would become options or files of our tools -----------------------------------------------
+
+NODE = {"sn_package": "robotics_test", "sn_type": "talker.py", "sn_name": "talker", "sn_params": "", "sn_side": "S"}
+LAUNCHER = {"sl_package": "robotics_test", "sl_file_launcher": "two_talkers.launch", "sl_name": "talkers",
+            "sl_params": "", "sl_side": "S"}
+
+
+@pytest.mark.parametrize("field,params,expected", [
+    ("sl_params", "--pid=/tmp/victim /tmp/evil.launch", "arg:=value"),
+    ("sl_params", "/tmp/evil.launch", "arg:=value"),
+    ("sl_params", "rate:=2 --wait", "arg:=value"),
+    ("sl_params", "-p 11311", "arg:=value"),
+    ("sl_params", "rate:=2 other.launch", "arg:=value"),
+    ("sl_params", "__log:=/any/path", "__log:="),
+    ("sl_params", "rate:=2 __master:=http://evil:11311", "__master:="),
+    ("sn_params", "__log:=/any/path", "__log:="),
+    ("sn_params", "--rate 2 __master:=http://evil:11311", "__master:="),
+    ("sn_params", "__ip:=203.0.113.9", "__ip:="),
+    ("sn_params", "'__hostname:=evil'", "__hostname:="),
+])
+def test_params_that_would_redirect_our_tools_are_refused(master, field, params, expected):
+    item = dict(NODE if field == "sn_params" else LAUNCHER, **{field: params})
+    body = {"slg_name": "attack", "sn_list" if field == "sn_params" else "sl_list": [item]}
+    status, answer = master.post(SL, body)
+    assert status == 400 and answer["result"] == "ERROR" and expected in answer["reason"], answer
+    assert field in answer["reason"]
+    assert master.get("/service_logic/read?slg_name=attack")[0] == 404
+
+
+def test_params_a_program_may_have_stay_allowed(master):
+    nodes = [dict(NODE, sn_name="pub", sn_package="rostopic", sn_type="rostopic",
+                  sn_params="pub -r 2 /chatter std_msgs/String 'data: hi'"),
+             dict(NODE, sn_name="talker", sn_params="--rate 2 'hello world' __name:=t2 __ns:=/x chatter:=other")]
+    launchers = [dict(LAUNCHER, sl_params="rate:=2 greeting:='hello world' robot_name:=r1")]
+    status, answer = master.post(SL, {"slg_name": "fine", "sn_list": nodes, "sl_list": launchers})
+    assert status == 200, answer
+    assert master.get("/service_logic/read?slg_name=fine")[1]["reason"]["sn_list"] == nodes
