@@ -30,10 +30,10 @@ from include.whitelist import WhitelistError
 log = logging.getLogger("firos.bridge")
 
 _LITERAL_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
-# NGSI versions whose broker notifies an update only when it changes something (v1 Orion; the stand-in as
-# Orion-LD): the subscription also watches COMMAND, so that a repeated command (COMMAND back from [] to [p1])
-# notifies. v2 repeats use forcedUpdate instead (CONTRACTS §3).
-COMMAND_WATCHED = ("v1", "ld")
+# NGSI versions whose broker notifies an update only when it changes something and offers no way to force it
+# (v1 Orion): the subscription also watches COMMAND, so that a repeated command (COMMAND back from [] to [p1])
+# notifies. v2 repeats use forcedUpdate (CONTRACTS §3); an NGSI-LD broker notifies every update.
+COMMAND_WATCHED = ("v1",)
 
 
 def _message_type(attr_type):
