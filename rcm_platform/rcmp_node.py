@@ -409,13 +409,10 @@ def build_agent(config, reactor, on_error=None):
     conf = rcmp_vpn.managed_config(config)
     if conf is None:
         return build(config, reactor)
-    from twisted.application import service
     table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-    top = service.MultiService()
     vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor)
-    vpn.setServiceParent(top)
-    rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table), on_error or log.error).setServiceParent(top)
-    return top
+    return rcmp_vpn.VpnFirst(vpn, rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table),
+                                                   on_error or log.error))
 
 
 # -- main -------------------------------------------------------------------------------------------------------

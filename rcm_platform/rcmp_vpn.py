@@ -446,23 +446,45 @@ def revoke(home, name):
     return already, killed
 
 
-def connected_names(home):
-    """The common names connected to the running OpenVPN server, or None when its management socket is silent."""
+def _client_rows(home):
+    """The server's connected clients as dicts keyed by the status header's names, or None when it is silent."""
     answer = _management(home, "status 3")
     if answer is None:
         return None
-    names = set()
+    header, rows = None, []
     for line in answer:
         fields = line.split("\t")
-        if len(fields) > 1 and fields[0] == "CLIENT_LIST":
-            names.add(fields[1])
-    return names
+        if fields[:2] == ["HEADER", "CLIENT_LIST"]:
+            header = fields[2:]
+        elif fields[0] == "CLIENT_LIST" and header:
+            rows.append(dict(zip(header, fields[1:])))
+    return rows
+
+
+def connected_names(home):
+    """The common names connected to the running OpenVPN server, or None when its management socket is silent."""
+    rows = _client_rows(home)
+    return None if rows is None else {row.get("Common Name") for row in rows}
 
 
 def kill_client(home, name):
-    """Cut NAME's connection through the management interface; True if a client was cut."""
-    answer = _management(home, f"kill {name}")
-    return bool(answer) and answer[0].startswith("SUCCESS")
+    """Cut NAME's connection through the management interface at once; True if a client was cut.
+
+    ``client-kill`` tells the client to restart (so it tries again now and is refused, rather than noticing the
+    cut only at its next keepalive timeout); ``kill NAME`` is the fallback when the client id is not listed.
+    """
+    rows = _client_rows(home)
+    if rows is None:
+        return False
+    ids = [row["Client ID"] for row in rows if row.get("Common Name") == name and row.get("Client ID", "").isdigit()]
+    if not ids:
+        answer = _management(home, f"kill {name}")
+        return bool(answer) and answer[0].startswith("SUCCESS")
+    cut = False
+    for cid in ids:
+        answer = _management(home, f"client-kill {cid}")
+        cut = cut or (bool(answer) and answer[0].startswith("SUCCESS"))
+    return cut
 
 
 def _management(home, command):
@@ -658,6 +680,34 @@ class ManagedVpn(_service_base()):
         log.info("managed VPN: stopping OpenVPN")
         d = self.table.stop(self.KEY)
         d.addCallback(lambda _: log.info("managed VPN: OpenVPN stopped"))
+        return d
+
+
+def _multi_service_base():
+    from twisted.application import service
+    return service.MultiService
+
+
+class VpnFirst(_multi_service_base()):
+    """The agent's top service with a managed VPN: OpenVPN started first and stopped last, after the agent.
+
+    (Twisted's ``MultiService`` stops its children all at once; the agent needs the VPN while it says bye to its
+    peer and while its ROS children unregister from their masters.)
+    """
+
+    def __init__(self, vpn, after):
+        super().__init__()
+        self.vpn = vpn
+        self.after = after
+        vpn.setServiceParent(self)
+        after.setServiceParent(self)
+
+    def stopService(self):
+        from twisted.application import service
+        from twisted.internet import defer
+        service.Service.stopService(self)
+        d = defer.maybeDeferred(self.after.stopService)
+        d.addBoth(lambda _: self.vpn.stopService())
         return d
 
 
