@@ -12,21 +12,27 @@ Live state the RDAPI shows (connected, paired, the service space row) is written
 thread, one write after the other in the order the events happened.
 """
 
+import collections
 import logging
+import os
 
 from twisted.application import service
 from twisted.internet import defer, threads
 
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
+from rcm_platform.rcmp_command import BadRequest, validate_name
 
 log = logging.getLogger("rcmp.event")
 
 VERSION = 1                      # version of this message set, sent in hello
 START_TIMEOUT = 180.0            # seconds the master waits for the robot to start its items
 STOP_TIMEOUT = 60.0              # seconds the master waits for the robot to stop them
-HELLO_TIMEOUT = 15.0
-RETRY_CAP = 5.0                  # longest wait between two hellos
+HELLO_TIMEOUT = 300.0            # a robot's last resort; it waits for the answer while the master is heard
+HELLO_WAIT = 10.0                # seconds a new connection has to send its hello before the master closes it
+RETRY_CAP = 5.0                  # longest wait between two hellos (plus up to RETRY_JITTER)
+RETRY_JITTER = 1.0               # random seconds added to each wait, so that a fleet does not come back together
+LOGGED_TEXT = 200                # characters of a peer's free text (reasons) that go into the log
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
 
@@ -44,6 +50,17 @@ OPS = {
     "disconnect": ("robot", {"reason": str}),
 }
 OPTIONAL = {"ros_master_uri", "start_ros_master_port"}
+
+
+def default_max_starting_spaces():
+    """Service spaces built at once unless ``max_starting_spaces`` says otherwise: two per core, at least 2."""
+    return max(2, 2 * (os.cpu_count() or 1))
+
+
+def _short(text, limit=LOGGED_TEXT):
+    """A peer's free text, cut to ``limit`` characters for the log."""
+    text = str(text)
+    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
 def _type_names(types):
@@ -117,7 +134,10 @@ def _default_master_address(own_address):
 # master side
 
 class RobotSession:
-    """One connected robot as seen by the master; the ``RemoteRobot`` given to the ServiceSpaceManager."""
+    """One connected robot as seen by the master; the ``RemoteRobot`` given to the ServiceSpaceManager.
+
+    ``address`` is the connection's source address, never what the hello body claims.
+    """
 
     def __init__(self, agent, peer, name, address, robot):
         self.agent = agent
@@ -137,7 +157,7 @@ class RobotSession:
             "start_ros_master_port": start_ros_master_port}, timeout=START_TIMEOUT)
 
     def stop_items(self, ss_name):
-        if self.peer.closed:
+        if self.peer.closed or self.peer.aborted:
             return defer.succeed({})
         return self.peer.request("stop_items", {"ss_name": ss_name}, timeout=STOP_TIMEOUT)
 
@@ -151,8 +171,17 @@ class RobotSession:
 class MasterAgent(service.Service):
     """The master's agent-to-agent server: hello, sessions, heartbeats, service spaces.
 
-    ``spaces`` is the ``rcmp_ms.ServiceSpaceManager`` (``describe()`` for service_space/read);
-    ``disconnect(pi_name, reason)`` tears a robot's session down for the RDAPI's r_provisioning.
+    ``spaces`` is the ``rcmp_ms.ServiceSpaceManager``; ``describe()`` answers service_space/read (a space
+    still waiting to be built is described as such); ``remove(pi_name, reason, remove)`` ends a robot's session
+    and removes its provisioning under the robot's lock (the RDAPI's r_provisioning); ``disconnect(pi_name,
+    reason)`` only ends the session. ``expected_address(name) -> str | None`` (optional) is the address a hello
+    naming ``name`` must come from (the managed VPN's), or None when there is no such rule for ``name``.
+
+    Admission of a hello (docs/PROTOCOL.md, docs/SECURITY.md): the name is checked against the name rule, then
+    against ``expected_address`` (``wrong_address``); then, under the robot's lock, its provisioning
+    (``not_provisioned``) and its live session (``in_use`` when a session heard from within the heartbeat window
+    comes from another source address). Space creation is queued after the answer: at most
+    ``max_starting_spaces`` are built at once, the others wait in arrival order.
     """
 
     name = "ic-master"
@@ -173,6 +202,11 @@ class MasterAgent(service.Service):
         self.sessions = {}           # robot name -> RobotSession
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
         self._write = _OrderedWrites()
+        self.max_starting_spaces = (getattr(config, "max_starting_spaces", None)
+                                    or default_max_starting_spaces())
+        self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
+        self._starting = {}          # robot name -> session whose space is being built now
+        self.counters = collections.Counter()        # sessions opened / ended, hellos refused by code, ...
         self.listening = None
         self.address = None
         self._address_call = None
@@ -203,7 +237,10 @@ class MasterAgent(service.Service):
             log.error("cannot listen for robots: %s", exc)
 
     def _listen(self):
-        self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self)
+        self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self,
+                                   max_connections=getattr(self.config, "ic_max_connections", None),
+                                   max_per_address=getattr(self.config, "ic_max_per_address", None)
+                                   or ic.MAX_PER_ADDRESS)
         log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
 
     @defer.inlineCallbacks
@@ -212,8 +249,11 @@ class MasterAgent(service.Service):
         if self._address_call is not None and self._address_call.active():
             self._address_call.cancel()
         if self.listening is not None:
-            yield self.listening.stopListening()
-            self.listening = None
+            listening, self.listening = self.listening, None
+            yield listening.stopListening()
+            for peer in list(listening.factory.peers):   # connections without a session go now
+                if peer.info.get("session") is None:
+                    peer.abort("the master is stopping")
         yield defer.gatherResults([
             self._locked(name, self._end_session, self.sessions.get(name), "the master is stopping",
                          tell_robot=True) for name in list(self.sessions)], consumeErrors=True)
@@ -226,8 +266,32 @@ class MasterAgent(service.Service):
         return self._locked(pi_name, lambda: self._end_session(self.sessions.get(pi_name), reason,
                                                                  tell_robot=True))
 
+    def remove(self, pi_name, reason, remove):
+        """Under ``pi_name``'s lock: end its session (if any), then run ``remove()`` (blocking, in a thread).
+
+        Fires with True when a session was ended. A hello for ``pi_name`` runs its provisioning check and opens
+        its session under the same lock, so it either comes before (and its session is ended here) or after
+        (and finds no provisioning)."""
+        @defer.inlineCallbacks
+        def work():
+            session = self.sessions.get(pi_name)
+            yield self._end_session(session, reason, tell_robot=True)
+            yield threads.deferToThread(remove)
+            return session is not None
+        return self._locked(pi_name, work)
+
     def connected_robots(self):
         return sorted(self.sessions)
+
+    def describe(self, ss_name):
+        """The service_space/read payload: the space manager's, or, for a space waiting to be built, why."""
+        if ss_name in self._waiting:
+            place = list(self._waiting).index(ss_name) + 1
+            return {"r_nodes": [], "r_launchers": [], "public_ip": self.public_ip, "inbound_port": None,
+                    "ros_master_uri": None, "paired": False, "waiting": True,
+                    "reason": f"waiting to be built: number {place} in line; the master builds at most "
+                              f"{self.max_starting_spaces} service spaces at once"}
+        return self.spaces.describe(ss_name)
 
     # -- protocol handler -------------------------------------------------------------------------------
     def request_received(self, peer, op, body):
@@ -246,20 +310,25 @@ class MasterAgent(service.Service):
             self.spaces.item_exited(body["ss_name"], body["report"])
             return {}
         if op == "bye":
-            log.info("robot %s is leaving: %s", session.name, body["reason"])
+            log.info("robot %s is leaving: %s", session.name, _short(body["reason"]))
             peer.info["said_bye"] = True
-            self.reactor.callLater(0, peer.close, f"robot said bye: {body['reason']}")
+            self.reactor.callLater(0, peer.close, f"robot said bye: {_short(body['reason'])}")
             return {}
         raise ic.Refused(f"the master agent does not serve op {op!r}", code="unknown_op")
 
     def peer_connected(self, peer):
-        """A connection that has not said an accepted hello within HELLO_TIMEOUT is closed."""
-        peer.info["hello_call"] = self.reactor.callLater(HELLO_TIMEOUT, self._hello_overdue, peer)
+        """A connection that has not sent its hello within HELLO_WAIT is closed (it holds a slot for nothing)."""
+        peer.info["hello_call"] = self.reactor.callLater(HELLO_WAIT, self._hello_overdue, peer)
 
     def _hello_overdue(self, peer):
-        if peer.info.get("session") is None and not peer.closed:
-            log.warning("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_TIMEOUT)
-            peer.close("no hello in time")
+        peer.info["hello_call"] = None
+        if peer.closed or peer.info.get("session") is not None:
+            return
+        if peer.info.get("hello_pending"):     # being answered: look again later
+            peer.info["hello_call"] = self.reactor.callLater(HELLO_WAIT, self._hello_overdue, peer)
+            return
+        log.warning("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_WAIT)
+        peer.abort("no hello in time")
 
     def peer_lost(self, peer, why):
         call = peer.info.get("hello_call")
@@ -277,48 +346,49 @@ class MasterAgent(service.Service):
     # -- hello ------------------------------------------------------------------------------------------
     @defer.inlineCallbacks
     def _hello(self, peer, body):
-        name, address = body["name"], body["address"]
         if peer.info.get("session") is not None or peer.info.get("hello_pending"):
             raise ic.Refused("hello was already said on this connection", code="bad_request")
-        if not self.running:
-            self._refuse_later(peer)
-            raise ic.Refused("the master is stopping", code="gone")
+        started = self.reactor.seconds()
         peer.info["hello_pending"] = True
         try:
-            answer = yield self._accept(peer, name, address, body)
+            answer = yield self._accept(peer, body)
+        except ic.Refused as exc:
+            self.counters[f"refused_{exc.code}"] += 1
+            self._refuse_later(peer)
+            raise
         finally:
             peer.info["hello_pending"] = False
+        log.info("robot %s connected from %s (hello answered in %.3f s)", body["name"], peer.host,
+                 self.reactor.seconds() - started)
         return answer
 
     @defer.inlineCallbacks
-    def _accept(self, peer, name, address, body):
+    def _accept(self, peer, body):
+        """Check a hello in the order docs/PROTOCOL.md gives; the answer, or ic.Refused."""
+        try:
+            name = validate_name(body["name"], "name")
+        except BadRequest as exc:
+            log.warning("refused hello from %s: %s", peer.remote, exc)
+            raise ic.Refused(f"hello: {exc}", code="bad_request") from None
+        if not self.running:
+            raise ic.Refused("the master is stopping", code="gone")
         if body["version"] != VERSION:
-            self._refuse_later(peer)
             raise ic.Refused(f"message version {body['version']} is not supported; the master speaks "
                              f"version {VERSION}", code="unsupported_version")
         if name == self.config.name:
-            self._refuse_later(peer)
             raise ic.Refused(f"{name!r} is the master's own name; give the robot another name",
                              code="not_provisioned")
         if self.expected_address is not None:
-            expected = self.expected_address(name)
-            source = peer.remote.rsplit(":", 1)[0]
-            if expected is not None and expected != source:
+            expected = yield defer.maybeDeferred(self.expected_address, name)
+            if expected is not None and expected != peer.host:
                 log.warning("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
                             expected)
-                self._refuse_later(peer)
                 raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
-                                 f"{source}", code="wrong_address")
-        pi = yield threads.deferToThread(self.data.platform_instance, name)
+                                 f"{peer.host}", code="wrong_address")
+        pi = yield self._locked(name, self._admit, peer, name, body["robot"])
         if pi is None:
-            log.info("refused hello from %s (%s): not provisioned", name, peer.remote)
-            self._refuse_later(peer)
-            raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
-                             f"platform_instance/provisioning", code="not_provisioned")
-        session = yield self._locked(name, self._open_session, peer, name, address, body["robot"])
-        if session is None:
             raise ic.Refused("the connection closed during hello", code="gone")
-        self.reactor.callLater(0, self._create_space, session, pi)
+        self._queue_space(peer.info["session"], pi)
         return {"accepted": True, "master": self.config.name, "heartbeat_interval": self.config.heartbeat_interval,
                 "heartbeat_misses": self.config.heartbeat_misses}
 
@@ -327,22 +397,61 @@ class MasterAgent(service.Service):
         self.reactor.callLater(0, peer.close, "hello refused")
 
     @defer.inlineCallbacks
-    def _open_session(self, peer, name, address, robot):
+    def _admit(self, peer, name, robot):
+        """Under ``name``'s lock: its provisioning, the takeover rule, then the new session; the provisioning row
+        (None when the connection closed meanwhile)."""
+        pi = yield threads.deferToThread(self.data.platform_instance, name)
+        if pi is None:
+            log.info("refused hello from %s (%s): not provisioned", name, peer.remote)
+            raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
+                             f"platform_instance/provisioning", code="not_provisioned")
         old = self.sessions.get(name)
-        if old is not None:
-            log.info("robot %s said hello again: replacing its session", name)
+        if old is not None and not old.ended:
+            silent = self.reactor.seconds() - (old.peer.last_heard or 0)
+            if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
+                log.warning("refused hello for %s from %s: its session from %s is alive (heard %.1f s ago)",
+                            name, peer.remote, old.address, silent)
+                raise ic.Refused(f"robot {name!r} has a live session from {old.address} (heard {silent:.1f} s "
+                                 f"ago); a hello from {peer.host} cannot take it over", code="in_use")
+            log.info("robot %s said hello again from %s: replacing its session from %s", name, peer.host,
+                     old.address)
+            # a robot says hello on a new connection only once it gave up the old one (and stopped its items):
+            # drop the old connection first, so the teardown does not wait for answers that cannot come
+            old.peer.abort("replaced by a new hello from the robot")
             yield self._end_session(old, "replaced by a new hello from the robot")
         if peer.closed:
             return None
-        session = RobotSession(self, peer, name, address, robot)
+        session = RobotSession(self, peer, name, peer.host, robot)
+        peer.admit()
         peer.info["session"] = session
         self.sessions[name] = session
-        yield self._write(self.data.set_connected, name, address)
-        # the robot beats only once it has our answer: count from now, not from its hello (the write may be slow)
+        self.counters["sessions_opened"] += 1
+        self._write(self.data.set_connected, name, peer.host)     # in order, but the answer does not wait for it
+        # the robot's silence is counted from our answer, not from its hello (the lock or lookup may be slow)
         peer.last_heard = max(peer.last_heard, self.reactor.seconds())
         session.watchdog.start()
-        log.info("robot %s connected from %s", name, address)
-        return session
+        return pi
+
+    # -- service space admission ------------------------------------------------------------------------
+    def _queue_space(self, session, pi):
+        """Build the robot's space when its turn comes: at most max_starting_spaces at once, in arrival order."""
+        self._waiting[session.name] = (session, pi)
+        self._next_spaces()
+
+    def _next_spaces(self):
+        while self._waiting and len(self._starting) < self.max_starting_spaces:
+            name, (session, pi) = self._waiting.popitem(last=False)
+            if session.ended:
+                continue
+            self._starting[name] = session
+            d = self._create_space(session, pi)
+            d.addBoth(self._space_built, name, session)
+
+    def _space_built(self, result, name, session):
+        if self._starting.get(name) is session:
+            del self._starting[name]
+        self.reactor.callLater(0, self._next_spaces)
+        return None
 
     @defer.inlineCallbacks
     def _create_space(self, session, pi):
@@ -366,8 +475,12 @@ class MasterAgent(service.Service):
             return
         session.ended = True
         session.watchdog.stop()
+        self.counters["sessions_ended"] += 1
         if self.sessions.get(session.name) is session:
             del self.sessions[session.name]
+        waiting = self._waiting.get(session.name)
+        if waiting is not None and waiting[0] is session:
+            del self._waiting[session.name]
         log.info("ending robot %s's session: %s", session.name, reason)
         disconnected = self._write(self.data.set_disconnected, session.name)
         if tell_robot and not session.peer.closed:
@@ -418,7 +531,7 @@ class RobotAgent(service.Service):
         else:  # tests give their own runner
             runner.on_item_exited = self._item_exited
         self.runner = runner
-        self.backoff = ic.Backoff(initial=0.25, factor=2.0, cap=RETRY_CAP)
+        self.backoff = ic.Backoff(initial=0.25, factor=2.0, cap=RETRY_CAP, jitter=RETRY_JITTER)
         self.peer = None
         self.accepted = False
         self.address = None
@@ -488,6 +601,16 @@ class RobotAgent(service.Service):
             return
         self.peer = peer
         self.accepted = False
+        # heartbeats from the start: a master that is slow to answer hello but still answers beats is waited
+        # for (hanging up would throw its work away and queue us again); a silent one is left
+        self.watchdog = rcmp_wd.Watchdog(
+            self.reactor, self.config.heartbeat_interval, self.config.heartbeat_misses,
+            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.config.heartbeat_interval *
+                                           self.config.heartbeat_misses),
+            last_heard=lambda: peer.last_heard,
+            on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
+            name="the master")
+        self.watchdog.start()
         try:
             answer = yield peer.request("hello", {"name": self.config.name, "address": self.address,
                                                   "robot": self.config.role == "robot", "version": VERSION},
@@ -507,14 +630,6 @@ class RobotAgent(service.Service):
         self._told_to_go = False
         self.backoff.reset()
         log.info("connected to master %s as %s (%s)", master, self.config.name, self.address)
-        self.watchdog = rcmp_wd.Watchdog(
-            self.reactor, self.config.heartbeat_interval, self.config.heartbeat_misses,
-            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.config.heartbeat_interval *
-                                           self.config.heartbeat_misses),
-            last_heard=lambda: peer.last_heard,
-            on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
-            name="the master")
-        self.watchdog.start()
         return answer
 
     def _stop_watchdog(self):
@@ -556,7 +671,7 @@ class RobotAgent(service.Service):
             log.info("master asks to stop the items of service space %s", body["ss_name"])
             return self.runner.stop_items(body["ss_name"]).addCallback(lambda _: {})
         if op == "disconnect":
-            log.warning("the master disconnects this robot: %s", body["reason"])
+            log.warning("the master disconnects this robot: %s", _short(body["reason"]))
             self._told_to_go = True
             return {}
         raise ic.Refused(f"the robot agent does not serve op {op!r}", code="unknown_op")

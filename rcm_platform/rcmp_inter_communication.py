@@ -9,8 +9,14 @@ A request (``req``) is answered by exactly one ``res`` (body = the result) or ``
 ``{"code", "reason"}``) carrying the same ``id`` and ``op``. Either side may send requests at any time.
 
 Rules (``docs/PROTOCOL.md`` is the reference):
-- a frame longer than ``MAX_FRAME`` bytes, a frame that is not a JSON object, or a frame without a usable
-  ``id``/``kind``/``op`` is a protocol error: it is logged and the connection is closed;
+- a frame longer than ``MAX_FRAME`` bytes, a frame that is not a JSON object (or is nested too deeply to parse),
+  or a frame without a usable ``id``/``kind``/``op`` is a protocol error: it is logged and the connection is
+  closed;
+- a connection a listener accepted is *not admitted* until its owner calls ``peer.admit()`` (the master does on
+  an accepted hello): until then its frames are at most ``MAX_FRAME_BEFORE_ADMISSION`` bytes and it may send at
+  most ``MAX_BYTES_BEFORE_ADMISSION`` bytes in all, so a stranger costs a few KB at most;
+- a listener holds at most ``max_connections`` connections, and at most ``max_per_address`` from one source
+  address; a connection over a cap is closed as soon as it is accepted, before anything is read;
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
@@ -23,7 +29,11 @@ answer) and, optionally, ``peer_connected(peer)`` and ``peer_lost(peer, reason)`
 
 import json
 import logging
+import random
+import re
+import resource
 
+from twisted.application.internet import backoffPolicy
 from twisted.internet import defer, endpoints, protocol
 from twisted.protocols.basic import Int32StringReceiver
 from twisted.python import failure
@@ -32,6 +42,10 @@ log = logging.getLogger("rcmp.ic")
 
 PROTOCOL_VERSION = 1
 MAX_FRAME = 1024 * 1024          # bytes of JSON in one frame
+MAX_FRAME_BEFORE_ADMISSION = 4096           # bytes of JSON in one frame from a peer not admitted yet
+MAX_BYTES_BEFORE_ADMISSION = 64 * 1024      # bytes a peer may send in all before it is admitted
+MAX_PER_ADDRESS = 8              # connections a listener accepts from one source address
+OP_RE = re.compile(r"[a-z][a-z_]{0,31}\Z")
 DEFAULT_TIMEOUT = 10.0           # seconds a request waits for its answer
 KINDS = ("req", "res", "err")
 
@@ -82,6 +96,8 @@ def decode_frame(data):
         message = json.loads(data.decode("utf-8"))
     except (UnicodeDecodeError, ValueError) as exc:
         raise ProtocolError(f"frame is not UTF-8 JSON: {exc}") from None
+    except RecursionError:
+        raise ProtocolError("frame is JSON nested too deeply to parse") from None
     if not isinstance(message, dict):
         raise ProtocolError("frame is not a JSON object")
     msg_id = message.get("id")
@@ -89,8 +105,8 @@ def decode_frame(data):
         raise ProtocolError("frame has no non-negative integer 'id'")
     if message.get("kind") not in KINDS:
         raise ProtocolError(f"frame has kind {message.get('kind')!r}, expected one of {', '.join(KINDS)}")
-    if not isinstance(message.get("op"), str) or not message["op"]:
-        raise ProtocolError("frame has no 'op' string")
+    if not isinstance(message.get("op"), str) or not OP_RE.match(message["op"]):
+        raise ProtocolError("frame has no 'op' string of 1 to 32 lowercase letters and underscores")
     body = message.get("body", {})
     if not isinstance(body, dict):
         raise ProtocolError("frame 'body' is not a JSON object")
@@ -103,13 +119,20 @@ class Peer(Int32StringReceiver):
 
     ``request(op, body, timeout)`` sends a request and returns a Deferred firing with the answer's body.
     ``last_heard`` is the reactor time of the last frame received (or of the connection), for heartbeats.
+    ``admitted`` is False for a connection a listener accepted until its owner calls ``admit()``: until then
+    frames are limited to ``MAX_FRAME_BEFORE_ADMISSION`` bytes and the whole connection to
+    ``MAX_BYTES_BEFORE_ADMISSION`` bytes received. Connections we open are admitted from the start.
     """
 
     MAX_LENGTH = MAX_FRAME
 
-    def __init__(self, handler, reactor):
+    def __init__(self, handler, reactor, admitted=True):
         self.handler = handler
         self.reactor = reactor
+        self.admitted = admitted
+        self.MAX_LENGTH = MAX_FRAME if admitted else MAX_FRAME_BEFORE_ADMISSION
+        self.received = 0            # bytes received before admission
+        self.aborted = False
         self.next_id = 1
         self.pending = {}            # id -> (op, Deferred, timeout call)
         self.connected_at = None
@@ -117,13 +140,15 @@ class Peer(Int32StringReceiver):
         self.closed = False
         self.close_reason = None
         self.info = {}               # free for the owner (e.g. the robot's name once it said hello)
+        self.host = "?"              # the connection's source address (never what the peer claims)
         self.remote = "?"
 
     # -- connection -------------------------------------------------------------------------------------
     def connectionMade(self):
         self.connected_at = self.last_heard = self.reactor.seconds()
         peer = self.transport.getPeer()
-        self.remote = f"{getattr(peer, 'host', '?')}:{getattr(peer, 'port', '?')}"
+        self.host = getattr(peer, "host", "?")
+        self.remote = f"{self.host}:{getattr(peer, 'port', '?')}"
         log.debug("connection with %s made", self.remote)
         connected = getattr(self.handler, "peer_connected", None)
         if connected:
@@ -131,6 +156,10 @@ class Peer(Int32StringReceiver):
 
     def connectionLost(self, reason=protocol.connectionDone):
         self.closed = True
+        self._unprocessed = b""      # an unfinished frame's bytes go now, not when the Peer is collected
+        gone = getattr(self.factory, "peer_gone", None) if hasattr(self, "factory") else None
+        if gone:
+            gone(self)
         why = self.close_reason or reason.getErrorMessage()
         pending, self.pending = self.pending, {}
         for op, d, call in pending.values():
@@ -148,9 +177,16 @@ class Peer(Int32StringReceiver):
             self.transport.loseConnection()
 
     def abort(self, reason):
-        if not self.closed and self.transport is not None:
+        """Drop the connection at once (nothing more is read or written)."""
+        if not self.closed and not self.aborted and self.transport is not None:
+            self.aborted = True
             self.close_reason = reason
             self.transport.abortConnection()
+
+    def admit(self):
+        """The owner trusts this peer now: full-size frames, no byte budget."""
+        self.admitted = True
+        self.MAX_LENGTH = MAX_FRAME
 
     # -- sending ----------------------------------------------------------------------------------------
     def _send(self, message):
@@ -189,13 +225,26 @@ class Peer(Int32StringReceiver):
                         "body": {"code": "too_large", "reason": str(exc)}})
 
     # -- receiving --------------------------------------------------------------------------------------
+    def dataReceived(self, data):
+        if self.closed or self.aborted:
+            return
+        if not self.admitted:
+            self.received += len(data)
+            if self.received > MAX_BYTES_BEFORE_ADMISSION:
+                log.warning("closing the connection from %s: over %d bytes sent before being admitted",
+                            self.remote, MAX_BYTES_BEFORE_ADMISSION)
+                self.abort("too much sent before being admitted")
+                return
+        super().dataReceived(data)
+
     def lengthLimitExceeded(self, length):
-        log.warning("protocol error from %s: frame of %d bytes is over the %d-byte limit; closing",
-                    self.remote, length, MAX_FRAME)
+        log.warning("protocol error from %s: frame of %d bytes is over the %d-byte limit%s; closing",
+                    self.remote, length, self.MAX_LENGTH, "" if self.admitted else " before admission")
+        self._unprocessed = b""
         self.abort(f"protocol error: frame of {length} bytes over the limit")
 
     def stringReceived(self, data):
-        if self.closed:
+        if self.closed or self.aborted:
             return
         self.last_heard = self.reactor.seconds()
         try:
@@ -248,7 +297,7 @@ class Peer(Int32StringReceiver):
 
 
 class PeerFactory(protocol.Factory):
-    """Builds a Peer per accepted (or made) connection, all sharing one handler."""
+    """Builds a Peer per made connection, all sharing one handler."""
 
     noisy = False
 
@@ -262,12 +311,78 @@ class PeerFactory(protocol.Factory):
         return peer
 
 
-def listen(reactor, address, port, handler):
+def default_max_connections():
+    """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), 64 to 4096."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY:
+        return 4096
+    return max(64, min(4096, soft // 4))
+
+
+class ListeningFactory(PeerFactory):
+    """Builds a not-yet-admitted Peer per accepted connection, within the listener's caps.
+
+    A connection over ``max_connections`` in all or ``max_per_address`` from its source address is refused
+    (``buildProtocol`` returns None: Twisted closes it before reading anything). Refusals are logged at most
+    once every ``LOG_EVERY`` seconds, with how many there were.
+    """
+
+    LOG_EVERY = 10.0
+
+    def __init__(self, handler, reactor, max_connections=None, max_per_address=MAX_PER_ADDRESS):
+        super().__init__(handler, reactor)
+        self.max_connections = max_connections or default_max_connections()
+        self.max_per_address = max_per_address
+        self.peers = set()
+        self.per_address = {}        # source address -> connections open
+        self.refused = 0             # connections refused since the last log line
+        self.refused_total = 0
+        self._logged_at = None
+
+    def buildProtocol(self, addr):
+        host = getattr(addr, "host", "?")
+        if len(self.peers) >= self.max_connections:
+            self._refuse(f"{len(self.peers)} connections open, the cap is {self.max_connections}", host)
+            return None
+        if self.per_address.get(host, 0) >= self.max_per_address:
+            self._refuse(f"{self.per_address[host]} connections open from {host}, the cap per address is "
+                         f"{self.max_per_address}", host)
+            return None
+        peer = Peer(self.handler, self.reactor, admitted=False)
+        peer.factory = self
+        peer.host = host
+        self.peers.add(peer)
+        self.per_address[host] = self.per_address.get(host, 0) + 1
+        return peer
+
+    def peer_gone(self, peer):
+        if peer in self.peers:
+            self.peers.discard(peer)
+            left = self.per_address.get(peer.host, 1) - 1
+            if left > 0:
+                self.per_address[peer.host] = left
+            else:
+                self.per_address.pop(peer.host, None)
+
+    def _refuse(self, why, host):
+        self.refused += 1
+        self.refused_total += 1
+        now = self.reactor.seconds()
+        if self._logged_at is None or now - self._logged_at >= self.LOG_EVERY:
+            log.warning("refusing connections on the agent port (%d since the last report; this one from %s): %s",
+                        self.refused, host, why)
+            self.refused = 0
+            self._logged_at = now
+
+
+def listen(reactor, address, port, handler, max_connections=None, max_per_address=MAX_PER_ADDRESS):
     """Listen on ``address:port`` now; returns the listening port (``stopListening()`` to stop).
 
-    Raises ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.
+    ``port.factory`` is the ``ListeningFactory`` (its caps and counters). Raises
+    ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.
     """
-    return reactor.listenTCP(port, PeerFactory(handler, reactor), interface=address)
+    factory = ListeningFactory(handler, reactor, max_connections, max_per_address)
+    return reactor.listenTCP(port, factory, interface=address)
 
 
 def connect(reactor, host, port, handler, timeout=5.0, bind_address=None):
@@ -278,18 +393,19 @@ def connect(reactor, host, port, handler, timeout=5.0, bind_address=None):
 
 
 class Backoff:
-    """Delays between reconnection attempts: ``initial``, doubling up to ``cap``; ``reset()`` after success."""
+    """Delays between reconnection attempts: Twisted's ``backoffPolicy`` (``initial`` growing by ``factor`` up to
+    ``cap``, plus a random 0 to ``jitter`` seconds so that a fleet that lost its master together does not come
+    back in lockstep); ``reset()`` after a success."""
 
-    def __init__(self, initial=0.25, factor=2.0, cap=5.0):
-        self.initial = initial
-        self.factor = factor
-        self.cap = cap
-        self.current = initial
+    def __init__(self, initial=0.25, factor=2.0, cap=5.0, jitter=1.0, rng=random.random):
+        self.policy = backoffPolicy(initialDelay=initial, maxDelay=cap, factor=factor,
+                                    jitter=lambda: jitter * rng())
+        self.attempts = 0
 
     def next_delay(self):
-        delay = self.current
-        self.current = min(self.cap, self.current * self.factor)
+        delay = self.policy(self.attempts)
+        self.attempts += 1
         return delay
 
     def reset(self):
-        self.current = self.initial
+        self.attempts = 0

@@ -65,6 +65,9 @@ class Config:
     rdapi_tls_cert: str | None = None  # (ext) master: PEM certificate (chain): the RDAPI speaks HTTPS
     rdapi_tls_key: str | None = None   # (ext) master: its PEM private key
     allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
+    max_starting_spaces: int | None = None       # (ext) service spaces the master builds at once (None: 2 per core)
+    ic_max_connections: int | None = None        # (ext) agent-port connections (None: a quarter of the fd limit)
+    ic_max_per_address: int | None = None        # (ext) agent-port connections from one address (None: 8)
 
 
 # -- configuration ----------------------------------------------------------------------------------------------
@@ -187,6 +190,9 @@ KEYS = {
     "rdapi_tls_cert": (_parse_path, ("master",)),
     "rdapi_tls_key": (_parse_path, ("master",)),
     "allowed_origins": (_parse_origins, ("master",)),
+    "max_starting_spaces": (_int_parser(1, 1000), ("master",)),
+    "ic_max_connections": (_int_parser(1, 100000), ("master",)),
+    "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
 }
 
 
@@ -376,7 +382,7 @@ def build_master(config, reactor, table=None):
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip,
                                    expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
     tokens = Tokens(data, reactor)
-    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent.spaces),
+    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent),
                      tokens=tokens, allowed_origins=config.allowed_origins)
     top = service.MultiService()
     agent.setServiceParent(top)

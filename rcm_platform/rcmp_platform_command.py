@@ -42,16 +42,19 @@ class PlatformCommands:
 
     @defer.inlineCallbacks
     def r_provisioning(self, body):
-        """Remove ``pi_name``; a connected robot is disconnected (service space torn down) first."""
+        """Remove ``pi_name``; a connected robot is disconnected (service space torn down) first.
+
+        With a master runtime both happen under the robot's lock (``robots.remove``), the lock its hello takes
+        to check provisioning and open a session, so a hello racing this call either loses (refused) or wins
+        and is then ended here: never a session left running for a removed robot."""
         require_fields(body, ("pi_name",))
         pi_name = validate_name(body["pi_name"], "pi_name")
-        row = yield threads.deferToThread(self.data.platform_instance, pi_name)
-        disconnected = ""
-        if row is not None and self.robots is not None:
-            # asked even when the data does not say connected yet: a hello may be in flight; it is a no-op
-            # for a robot that is not connected
-            yield self.robots.disconnect(pi_name, "its provisioning was removed")
-            if row["connected"]:
-                disconnected = " after disconnecting it"
-        yield threads.deferToThread(self.data.remove_platform_instance, pi_name)
-        return f"platform instance '{pi_name}' removed{disconnected}"
+
+        def remove():
+            self.data.remove_platform_instance(pi_name)
+        if self.robots is None:
+            yield threads.deferToThread(remove)
+            disconnected = False
+        else:
+            disconnected = yield self.robots.remove(pi_name, "its provisioning was removed", remove)
+        return f"platform instance '{pi_name}' removed{' after disconnecting it' if disconnected else ''}"

@@ -55,6 +55,7 @@ class ProtocolTests(unittest.TestCase):
         self.addCleanup(self._close)
         yield until(lambda: self.server_handler.connected)
         self.server = self.server_handler.connected[0]
+        self.server.admit()          # the limits before admission have tests of their own
 
     @defer.inlineCallbacks
     def _close(self):
@@ -193,8 +194,23 @@ class FrameTests(unittest.TestCase):
         self.assertEqual(ic.decode_frame(b'{"v":1,"id":0,"kind":"res","op":"x"}')["body"], {})
 
     def test_backoff_doubles_to_the_cap_and_resets(self):
-        backoff = ic.Backoff(initial=0.25, factor=2.0, cap=5.0)
+        backoff = ic.Backoff(initial=0.25, factor=2.0, cap=5.0, jitter=0)
         delays = [backoff.next_delay() for _ in range(8)]
         self.assertEqual(delays, [0.25, 0.5, 1.0, 2.0, 4.0, 5.0, 5.0, 5.0])
         backoff.reset()
         self.assertEqual(backoff.next_delay(), 0.25)
+
+    def test_backoff_is_jittered_so_a_fleet_spreads_out(self):
+        firsts = [ic.Backoff(initial=0.25, cap=5.0, jitter=1.0).next_delay() for _ in range(40)]
+        self.assertTrue(all(0.25 <= d <= 1.25 for d in firsts), firsts)
+        self.assertGreater(len({round(d, 3) for d in firsts}), 30)     # not in lockstep
+        self.assertGreater(max(firsts) - min(firsts), 0.5)
+
+    def test_deeply_nested_json_is_a_protocol_error(self):
+        with self.assertRaisesRegex(ic.ProtocolError, "nested too deeply"):
+            ic.decode_frame(b'{"v":1,"id":1,"kind":"req","op":"x","body":' + b"[" * 100000 + b"]" * 100000 + b"}")
+
+    def test_ops_are_short_words(self):
+        for op in ("Hello", "a" * 33, "x-y", "x y", "\u00e9"):
+            with self.assertRaises(ic.ProtocolError, msg=op):
+                ic.decode_frame(json.dumps({"v": 1, "id": 1, "kind": "req", "op": op}).encode())

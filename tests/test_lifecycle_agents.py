@@ -359,7 +359,7 @@ class HelloTimeoutTests(unittest.TestCase):
 
     @defer.inlineCallbacks
     def test_a_silent_connection_is_closed(self):
-        self.patch(rcmp_event, "HELLO_TIMEOUT", 0.2)
+        self.patch(rcmp_event, "HELLO_WAIT", 0.2)
         port = free_port()
         master = rcmp_event.MasterAgent(config("master", "127.0.0.1", port), Data(), None, reactor, "127.0.0.1",
                                         spaces=Spaces())

@@ -8,7 +8,7 @@ import json
 import os
 import tempfile
 
-from twisted.internet import defer
+from twisted.internet import defer, threads
 from twisted.trial import unittest
 from twisted.web.test.requesthelper import DummyRequest
 
@@ -21,16 +21,20 @@ from rcm_platform.rcmp_service_command import ServiceCommands
 
 
 class RecordingRobots:
-    """A master runtime that records disconnects and checks the robot is still provisioned when asked."""
+    """A master runtime that records removals and checks the robot is still provisioned when asked."""
 
     def __init__(self, data):
         self.data = data
         self.calls = []
 
-    def disconnect(self, pi_name, reason):
-        self.calls.append((pi_name, reason, self.data.platform_instance(pi_name) is not None))
-        self.data.set_disconnected(pi_name)
-        return defer.succeed(None)
+    def remove(self, pi_name, reason, remove):
+        row = self.data.platform_instance(pi_name)
+        self.calls.append((pi_name, reason, row is not None))
+        if row is not None and row["connected"]:
+            self.data.set_disconnected(pi_name)
+        d = threads.deferToThread(remove)
+        d.addCallback(lambda _: bool(row and row["connected"]))
+        return d
 
 
 class Spaces:
