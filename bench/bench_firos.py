@@ -1,13 +1,15 @@
 """FIROS benchmark: latency both ways at 10 Hz and the highest rate of distinct messages FIROS forwards for one
-robot with ten topics before values start being skipped. Writes its section of docs/PERFORMANCE.md.
+robot with ten topics before values start being skipped, with NGSI v2 and with NGSI-LD (one column each).
+Writes its section of docs/PERFORMANCE.md.
 
 Everything is real and on loopback: a ROS master, the stand-in broker and FIROS (`rosrun firos core.py`) as
 children; this process is the ROS peer (a rospy node) and the broker client.
 
-- ROS → broker: publish a distinct std_msgs/String and time until the broker's own v2 notification of the new
-  value reaches a receiver here (so the value is stored and readable; the notifier's delay is included).
-- broker → ROS: `POST /v2/op/update` with `cmd` and `COMMAND`, timed until the rospy subscriber here gets it
-  (broker notification → FIROS → ROS).
+- ROS → broker: publish a distinct std_msgs/String and time until the broker's own notification of the new
+  value (a v2 or NGSI-LD subscription of this benchmark) reaches a receiver here (so the value is stored and
+  readable; the notifier's delay is included).
+- broker → ROS: `POST /v2/op/update` (NGSI-LD: `POST /ngsi-ld/v1/entities/{id}/attrs`) with `cmd` and `COMMAND`,
+  timed until the rospy subscriber here gets it (broker notification → FIROS → ROS).
 - Throughput: ten topics of std_msgs/Int32, distinct values round-robin at a fixed total rate for a few seconds;
   "skipped" = published − forwarded (FIROS keeps only the newest value per attribute waiting, so a value it could
   not send in time is replaced; this also counts messages rospy's queue dropped). The highest rate with at most
@@ -37,6 +39,9 @@ from tests.support.processes import ProcessGroup  # noqa: E402
 from tests.support.rosmaster import RosMaster  # noqa: E402
 
 ROBOT = "benchbot"
+LD_ID = "urn:ngsi-ld:ROBOT:" + ROBOT
+LD_LINK = ('<https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld>; '
+           'rel="http://www.w3.org/ns/json-ld#context"; type="application/ld+json"')
 TOPICS = [f"t{i}" for i in range(10)]
 RATES = [250, 500, 1000, 2000, 4000]
 
@@ -48,15 +53,42 @@ def percentile(values, q):
 
 
 class Broker:
-    def __init__(self, port):
+    """The benchmark's own client of the broker, speaking NGSI ``version`` ("v2" or "ld")."""
+
+    def __init__(self, port, version):
         self.conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+        self.version = version
 
     def call(self, method, path, body=None):
         data = None if body is None else json.dumps(body).encode()
         headers = {"Content-Type": "application/json"} if data is not None else {}
+        if self.version == "ld":
+            headers["Link"] = LD_LINK
         self.conn.request(method, path, body=data, headers=headers)
         resp = self.conn.getresponse()
         return resp.status, resp.read()
+
+    def subscribe_lat(self, url):
+        """Subscribe the benchmark's receiver to attribute ``lat`` of the robot."""
+        if self.version == "ld":
+            return self.call("POST", "/ngsi-ld/v1/subscriptions", {
+                "type": "Subscription", "entities": [{"id": LD_ID, "type": "ROBOT"}], "watchedAttributes": ["lat"],
+                "notification": {"attributes": ["lat"], "format": "normalized",
+                                 "endpoint": {"uri": url, "accept": "application/json"}}})
+        return self.call("POST", "/v2/subscriptions", {
+            "subject": {"entities": [{"id": ROBOT, "type": "ROBOT"}], "condition": {"attrs": ["lat"]}},
+            "notification": {"http": {"url": url}, "attrs": ["lat"]}})
+
+    def command(self, token):
+        """Write ``cmd`` and COMMAND as a user would; the status the broker answered (204 when accepted)."""
+        if self.version == "ld":
+            return self.call("POST", f"/ngsi-ld/v1/entities/{LD_ID}/attrs", {
+                "cmd": {"type": "Property", "value": {"data": token},
+                        "messageType": {"type": "Property", "value": "std_msgs.msg.String"}},
+                "COMMAND": {"type": "Property", "value": ["cmd"]}})
+        return self.call("POST", "/v2/op/update", {"actionType": "append", "entities": [
+            {"id": ROBOT, "type": "ROBOT", "cmd": {"type": "std_msgs.msg.String", "value": {"data": token}},
+             "COMMAND": {"type": "COMMAND", "value": ["cmd"]}}]})
 
 
 class Receiver:
@@ -108,9 +140,7 @@ def measure_ros_to_broker(rospy, String, broker, samples):
     """Publish, and time until the broker has stored the value: its v2 notification reaches us (the notifier's
     own delay is included, so this is an upper bound of "readable in the broker")."""
     receiver = Receiver()
-    status, body = broker.call("POST", "/v2/subscriptions", {
-        "subject": {"entities": [{"id": ROBOT, "type": "ROBOT"}], "condition": {"attrs": ["lat"]}},
-        "notification": {"http": {"url": receiver.url}, "attrs": ["lat"]}})
+    status, body = broker.subscribe_lat(receiver.url)
     if status != 201:
         raise RuntimeError(f"broker refused the benchmark's subscription: {status} {body[:200]}")
     pub = rospy.Publisher(f"/{ROBOT}/lat", String, queue_size=10)
@@ -150,9 +180,7 @@ def measure_broker_to_ros(rospy, String, broker, firos, samples):
         token = f"c{i}-{time.time()}"
         event.clear()
         start = time.perf_counter()
-        status, body = broker.call("POST", "/v2/op/update", {"actionType": "append", "entities": [
-            {"id": ROBOT, "type": "ROBOT", "cmd": {"type": "std_msgs.msg.String", "value": {"data": token}},
-             "COMMAND": {"type": "COMMAND", "value": ["cmd"]}}]})
+        status, body = broker.command(token)
         if status != 204:
             raise RuntimeError(f"broker refused the command: {status} {body[:200]}")
         deadline = time.monotonic() + 5
@@ -194,6 +222,37 @@ def measure_throughput(rospy, Int32, firos, rate, seconds):
             "skipped": max(0, total - forwarded), "requests": requests}
 
 
+def run_version(procs, master, tmp, version, samples, seconds):
+    """Latency both ways and the throughput runs against a fresh broker and FIROS speaking ``version``."""
+    import rospy
+    from std_msgs.msg import Int32, String
+    broker_proc = start_broker(procs, extra_args=["--quiet"])
+    config = write_config(os.path.join(tmp, f"config-{version}"), broker_proc.port, version=version, whitelist={
+        ROBOT: {"publisher": ["cmd"], "subscriber": ["lat", "t\\d"]}}, log_level="WARNING")
+    firos = Firos(procs, master, config).start()
+    try:
+        broker = Broker(broker_proc.port, version)
+        up = measure_ros_to_broker(rospy, String, broker, samples)
+        down = measure_broker_to_ros(rospy, String, broker, firos, samples)
+        runs = []
+        for rate in RATES:
+            run = measure_throughput(rospy, Int32, firos, rate, seconds)
+            runs.append(run)
+            print(f"{version} rate {rate}/s: {run}", flush=True)
+            if run["skipped"] > 0.01 * run["published"] or run["achieved"] < 0.95 * rate:
+                break
+    finally:
+        procs.stop(firos.process)
+        procs.stop(broker_proc.process)
+    sustained = max([r["forwarded"] / (r["published"] / r["achieved"]) for r in runs
+                     if r["skipped"] <= 0.01 * r["published"] and r["achieved"] >= 0.95 * r["rate"]] or [0])
+    clean = max([r["rate"] for r in runs if r["skipped"] == 0] or [0])
+    return {"up": up, "down": down, "runs": runs, "sustained": sustained, "clean": clean}
+
+
+VERSIONS = (("v2", "NGSI v2"), ("ld", "NGSI-LD"))
+
+
 def main(argv=None):
     argv = list(sys.argv[1:] if argv is None else argv)
     quick = "--quick" in argv
@@ -201,63 +260,63 @@ def main(argv=None):
     seconds = 2.0 if quick else 4.0
     tmp = tempfile.mkdtemp(prefix="bench-firos-")
     os.environ["ROS_LOG_DIR"] = os.path.join(tmp, "roslog")
+    results = {}
     with ProcessGroup(log_dir=tmp) as procs:
         master = RosMaster(procs).start()
-        broker_proc = start_broker(procs, extra_args=["--quiet"])
-        config = write_config(os.path.join(tmp, "config"), broker_proc.port, whitelist={
-            ROBOT: {"publisher": ["cmd"], "subscriber": ["lat", "t\\d"]}}, log_level="WARNING")
-        firos = Firos(procs, master, config).start()
         os.environ["ROS_MASTER_URI"] = master.uri
         os.environ["ROS_IP"] = "127.0.0.1"
         import rospy
-        from std_msgs.msg import Int32, String
         rospy.init_node("bench_firos", anonymous=True, disable_signals=True)
         try:
-            broker = Broker(broker_proc.port)
-            up = measure_ros_to_broker(rospy, String, broker, samples)
-            down = measure_broker_to_ros(rospy, String, broker, firos, samples)
-            runs = []
-            for rate in RATES:
-                run = measure_throughput(rospy, Int32, firos, rate, seconds)
-                runs.append(run)
-                print(f"rate {rate}/s: {run}", flush=True)
-                if run["skipped"] > 0.01 * run["published"] or run["achieved"] < 0.95 * rate:
-                    break
+            for version, _ in VERSIONS:
+                results[version] = run_version(procs, master, tmp, version, samples, seconds)
         finally:
             rospy.signal_shutdown("benchmark done")
-    sustained = max([r["forwarded"] / (r["published"] / r["achieved"]) for r in runs
-                     if r["skipped"] <= 0.01 * r["published"] and r["achieved"] >= 0.95 * r["rate"]] or [0])
-    clean = max([r["rate"] for r in runs if r["skipped"] == 0] or [0])
-    up50, up99 = percentile(up, 50), percentile(up, 99)
-    down50, down99 = percentile(down, 50), percentile(down, 99)
     load = os.getloadavg()
+
+    def met(value, ok):
+        return "met" if ok(value) else "NOT met"
+
     lines = [
-        "FIROS with the stand-in broker (NGSI v2), ROS master and this benchmark's rospy node on loopback "
-        f"(`bench/bench_firos.py`{' --quick' if quick else ''}); load average at the end {load[0]:.1f} / "
-        f"{load[1]:.1f} (1 / 5 min): the figures drop when other work shares the two cores.",
+        "FIROS with the stand-in broker, ROS master and this benchmark's rospy node on loopback "
+        f"(`bench/bench_firos.py`{' --quick' if quick else ''}), once with NGSI v2 and once with NGSI-LD (a fresh "
+        f"broker and FIROS each); load average at the end {load[0]:.1f} / {load[1]:.1f} (1 / 5 min): the figures "
+        "drop when other work shares the two cores.",
         "",
-        "| path (10 Hz, %d samples) | p50 | p99 | mean | target |" % len(up),
-        "| --- | --- | --- | --- | --- |",
-        f"| ROS publish → value readable in the broker | {up50:.2f} ms | {up99:.2f} ms | "
-        f"{statistics.mean(up):.2f} ms | p50 < 10 ms: {'met' if up50 < 10 else 'NOT met'} |",
-        f"| broker update → ROS message arrives | {down50:.2f} ms | {down99:.2f} ms | "
-        f"{statistics.mean(down):.2f} ms | p50 < 10 ms: {'met' if down50 < 10 else 'NOT met'} |",
-        "",
-        "One robot, ten topics (std_msgs/Int32), distinct values round-robin, %.0f s per rate:" % seconds,
-        "",
-        "| offered rate | achieved | published | forwarded | skipped | HTTP requests (batches) |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| path (10 Hz, %d samples) | " % samples + " | ".join(
+            f"{label} p50 | {label} p99 | {label} mean" for _, label in VERSIONS) + " | target p50 < 10 ms |",
+        "| --- |" + " --- |" * (3 * len(VERSIONS) + 1),
     ]
-    for r in runs:
-        lines.append(f"| {r['rate']}/s | {r['achieved']:.0f}/s | {r['published']} | {r['forwarded']} | "
-                     f"{r['skipped']} ({100.0 * r['skipped'] / r['published']:.1f} %) | {r['requests']} |")
-    lines += ["", f"Highest sustained rate with at most 1 % skipped: **{sustained:.0f} forwarded updates/s** "
-                  f"(target >= 500/s: {'met' if sustained >= 500 else 'NOT met'}); highest offered rate with none "
-                  f"skipped at all: {clean}/s. The last rate tried is the first where more than 1 % were skipped, "
-                  "or the highest this single-threaded publisher reaches. FIROS batches: at low rates one request "
-                  "carries one value, at high rates several (compare forwarded with HTTP requests)."]
+    for key, what in (("up", "ROS publish → value readable in the broker"),
+                      ("down", "broker update → ROS message arrives")):
+        cells, verdicts = [], []
+        for version, label in VERSIONS:
+            values = results[version][key]
+            p50 = percentile(values, 50)
+            cells.append(f"{p50:.2f} ms | {percentile(values, 99):.2f} ms | {statistics.mean(values):.2f} ms")
+            verdicts.append(f"{label} {met(p50, lambda v: v < 10)}")
+        lines.append(f"| {what} | " + " | ".join(cells) + " | " + ", ".join(verdicts) + " |")
+    lines += ["", "One robot, ten topics (std_msgs/Int32), distinct values round-robin, %.0f s per rate:" % seconds,
+              "",
+              "| NGSI | offered rate | achieved | published | forwarded | skipped | HTTP requests (batches) |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for version, label in VERSIONS:
+        for r in results[version]["runs"]:
+            lines.append(f"| {label} | {r['rate']}/s | {r['achieved']:.0f}/s | {r['published']} | {r['forwarded']} | "
+                         f"{r['skipped']} ({100.0 * r['skipped'] / r['published']:.1f} %) | {r['requests']} |")
+    lines.append("")
+    for version, label in VERSIONS:
+        result = results[version]
+        lines.append(f"{label}: highest sustained rate with at most 1 % skipped: **{result['sustained']:.0f} "
+                     f"forwarded updates/s** (target >= 500/s: {met(result['sustained'], lambda v: v >= 500)}); "
+                     f"highest offered rate with none skipped at all: {result['clean']}/s.")
+        lines.append("")
+    lines.append("The last rate tried is the first where more than 1 % were skipped, or the highest this "
+                 "single-threaded publisher reaches. FIROS batches: at low rates one request carries one value, at "
+                 "high rates several (compare forwarded with HTTP requests); NGSI-LD batches are "
+                 "`entityOperations/upsert` requests.")
     body = "\n".join(lines)
-    write_section("firos", "FIROS: latency and throughput", body)
+    write_section("firos", "FIROS: latency and throughput (NGSI v2 and NGSI-LD)", body)
     print(body)
     return 0
 
