@@ -272,7 +272,7 @@ def _entity(settings, eid):
     return client.get_entity(eid)
 
 
-@pytest.mark.parametrize("version", ["v1", "v2"])
+@pytest.mark.parametrize("version", ["v1", "v2", "ld"])
 def test_sender_keeps_only_the_newest_value_while_the_broker_is_away(tmp_path, version):
     from tests.support.ports import stable_free_ports
     (port,) = stable_free_ports(1)
@@ -325,20 +325,26 @@ def test_sender_batches_and_honours_pub_frequency(tmp_path, broker):
         sender.stop()
 
 
-@pytest.mark.parametrize("version", ["v1", "v2"])
+@pytest.mark.parametrize("version", ["v1", "v2", "ld"])
 def test_subscriptions_are_refreshed_before_expiry_and_removed(tmp_path, broker, version):
     settings = _settings(tmp_path, broker.port, version=version)
     settings.subscription_length, settings.subscription_refresh_delay = 60.0, 0.3
     client = NgsiClient(settings)
     subs = Subscriptions(NgsiClient(settings), settings, "http://127.0.0.1:9/firos")
     subs.start()
+    path, expiry = ("/ngsi-ld/v1/subscriptions", "expiresAt") if version == "ld" else ("/v2/subscriptions", "expires")
     try:
         subs.set("bot", ["p1"])
         sub_id = wait_until(lambda: subs.ids().get("bot"), message="the subscription")
-        listed = lambda: {s["id"]: s for s in (client.request("GET", "/v2/subscriptions")[2] or [])}  # noqa: E731
+        listed = lambda: {s["id"]: s for s in (client.request("GET", path)[2] or [])}  # noqa: E731
         first = listed()[sub_id]
-        assert first["subject"]["condition"]["attrs"] == ["p1"]
-        wait_until(lambda: listed()[sub_id]["expires"] != first["expires"], timeout=5,
+        if version == "ld":
+            assert first["watchedAttributes"] == ["p1"]
+            assert first["entities"] == [{"id": "urn:ngsi-ld:ROBOT:bot", "type": "ROBOT"}]
+            assert first["notification"]["endpoint"]["uri"] == "http://127.0.0.1:9/firos"
+        else:
+            assert first["subject"]["condition"]["attrs"] == ["p1"]
+        wait_until(lambda: listed()[sub_id][expiry] != first[expiry], timeout=5,
                    message="the expiry pushed ahead by a refresh")
         subs.remove("bot")
         wait_until(lambda: sub_id not in listed(), message="the subscription removed")
@@ -432,7 +438,7 @@ def test_sender_retries_a_broker_answering_500_and_keeps_the_newest(tmp_path):
         server.close()
 
 
-@pytest.mark.parametrize("version", ["v1", "v2"])
+@pytest.mark.parametrize("version", ["v1", "v2", "ld"])
 def test_a_forgotten_subscription_is_an_error_on_refresh_and_is_recreated(tmp_path, broker, version):
     from include.ngsi_client import BrokerError
     settings = _settings(tmp_path, broker.port, version=version)
@@ -446,7 +452,9 @@ def test_a_forgotten_subscription_is_an_error_on_refresh_and_is_recreated(tmp_pa
     try:
         subs.set("bot", [])
         first = wait_until(lambda: subs.ids().get("bot"), message="the subscription")
-        if version == "v2":
+        if version == "ld":
+            client.request("DELETE", f"/ngsi-ld/v1/subscriptions/{first}")
+        elif version == "v2":
             client.request("DELETE", f"/v2/subscriptions/{first}")
         else:
             client.request("POST", "/v1/unsubscribeContext", {"subscriptionId": first})
@@ -455,3 +463,40 @@ def test_a_forgotten_subscription_is_an_error_on_refresh_and_is_recreated(tmp_pa
         assert second != first and lost == ["bot"]
     finally:
         subs.stop()
+
+
+def test_ld_client_writes_by_batch_upsert_and_reports_problem_details(tmp_path, broker):
+    from include.ngsi_client import BrokerError
+    settings = _settings(tmp_path, broker.port, version="ld")
+    client = NgsiClient(settings)
+    assert client.headers["Link"].startswith("<https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld>; rel=")
+    client.update({"bot": {"COMMAND": ("COMMAND", []), "descriptions": ("DescriptionData", "http://a||http://b")},
+                   "bot2": {"pose": ("geometry_msgs.msg.Pose2D", {"firosstamp": 1000.25, "x": 1.0})}})
+    _, _, raw = client.request("GET", "/ngsi-ld/v1/entities/urn:ngsi-ld:ROBOT:bot2")
+    assert raw["pose"] == {"type": "Property", "value": {"firosstamp": 1000.25, "x": 1.0},
+                           "observedAt": "1970-01-01T00:16:40.250Z",
+                           "messageType": {"type": "Property", "value": "geometry_msgs.msg.Pose2D"}}
+    assert client.get_entity("bot")["descriptions"] == {"type": "Property", "value": "http://a||http://b"}
+    assert client.get_entity("bot2")["pose"]["type"] == "geometry_msgs.msg.Pose2D"
+    assert client.get_entity("nobody") is None
+    # a refused entity in the batch: the broker's ProblemDetails in the error text
+    with pytest.raises(BrokerError) as info:
+        client.update({"bot": {"a(b": ("std_msgs.msg.Int32", {"data": 1})}})
+    assert "urn:ngsi-ld:ROBOT:bot" in str(info.value) and "BadRequestData" in str(info.value), str(info.value)
+    with pytest.raises(BrokerError) as info:
+        client.request("GET", "/ngsi-ld/v1/entities/not-a-uri")
+    assert info.value.status == 400 and "BadRequestData" in str(info.value), str(info.value)
+    client.delete_entity("bot2")
+    client.delete_entity("bot2")                     # already gone: fine
+    assert client.get_entity("bot2") is None
+
+
+def test_ld_settings(tmp_path):
+    settings = cfg.load_settings(_config(tmp_path, {"contextbroker": {"address": "x"}, "ngsi_version": "ld",
+                                                    "ld_context": "https://example.org/ctx.jsonld"}))
+    assert settings.ngsi_version == "ld" and settings.ld_context == "https://example.org/ctx.jsonld"
+    assert NgsiClient(settings).headers["Link"].startswith("<https://example.org/ctx.jsonld>")
+    with pytest.raises(cfg.ConfigError, match="test.ld_context must be an http"):
+        cfg.load_settings(_config(tmp_path, {"contextbroker": {"address": "x"}, "ld_context": "ctx"}))
+    assert cfg.load_settings(_config(tmp_path, {"contextbroker": {"address": "x"}})).ld_context == \
+        cfg.DEFAULT_LD_CONTEXT

@@ -243,7 +243,8 @@ class NgsiClient:
                 _, _, body = self.request("GET", f"{LD_BASE}/entities/{_q(self.entity_id(eid))}")
                 if not isinstance(body, dict):
                     return None
-                return {name: {"type": atype, "value": value}
+                # the message type where FIROS wrote one, else the NGSI-LD attribute type ("Property")
+                return {name: {"type": atype or _ld_kind(body[name]), "value": value}
                         for name, (atype, value) in ld_attributes(body, strict=False).items()}
             if self.version == "v2":
                 _, _, body = self.request("GET", f"/v2/entities/{_q(eid)}?type={_q(self.type)}")
@@ -363,6 +364,13 @@ def ld_property(atype, value):
     if atype not in LD_PLAIN_TYPES:
         prop[LD_MESSAGE_TYPE] = {"type": "Property", "value": atype}
     return prop
+
+
+def _ld_kind(attr):
+    """The NGSI-LD type of an attribute (of its first instance when it has several)."""
+    if isinstance(attr, list) and attr:
+        attr = attr[0]
+    return attr.get("type") if isinstance(attr, dict) else None
 
 
 def ld_attributes(entity, strict=True):
