@@ -611,6 +611,7 @@ class RobotAgent(service.Service):
             on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
             name="the master")
         self.watchdog.start()
+        asked = self.reactor.seconds()
         try:
             answer = yield peer.request("hello", {"name": self.config.name, "address": self.address,
                                                   "robot": self.config.role == "robot", "version": VERSION},
@@ -629,7 +630,8 @@ class RobotAgent(service.Service):
         self._last_problem = None
         self._told_to_go = False
         self.backoff.reset()
-        log.info("connected to master %s as %s (%s)", master, self.config.name, self.address)
+        log.info("connected to master %s as %s (%s); hello answered in %.3f s", master, self.config.name,
+                 self.address, self.reactor.seconds() - asked)
         return answer
 
     def _stop_watchdog(self):

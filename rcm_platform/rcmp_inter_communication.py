@@ -45,6 +45,7 @@ MAX_FRAME = 1024 * 1024          # bytes of JSON in one frame
 MAX_FRAME_BEFORE_ADMISSION = 4096           # bytes of JSON in one frame from a peer not admitted yet
 MAX_BYTES_BEFORE_ADMISSION = 64 * 1024      # bytes a peer may send in all before it is admitted
 MAX_PER_ADDRESS = 8              # connections a listener accepts from one source address
+LISTEN_BACKLOG = 512             # connections the kernel queues for accept (capped by somaxconn)
 OP_RE = re.compile(r"[a-z][a-z_]{0,31}\Z")
 DEFAULT_TIMEOUT = 10.0           # seconds a request waits for its answer
 KINDS = ("req", "res", "err")
@@ -382,7 +383,10 @@ def listen(reactor, address, port, handler, max_connections=None, max_per_addres
     ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.
     """
     factory = ListeningFactory(handler, reactor, max_connections, max_per_address)
-    return reactor.listenTCP(port, factory, interface=address)
+    # a fleet arriving at once (a master restarted under its robots) must not overflow the accept queue: a
+    # dropped SYN is retried by the robot's kernel only after a second or more
+    return reactor.listenTCP(port, factory, backlog=min(factory.max_connections, LISTEN_BACKLOG),
+                             interface=address)
 
 
 def connect(reactor, host, port, handler, timeout=5.0, bind_address=None):

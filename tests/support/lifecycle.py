@@ -9,11 +9,13 @@ test's finalizer uses, so a failing test never leaves processes behind.
 """
 
 import os
+import re
 import signal
+import time
 
 import rosgraph
 
-from .polling import wait_until
+from .polling import WaitTimeout, wait_until
 from .ports import ros_port_base, stable_free_ports
 from .rcmp_agent import RcmpAgent
 
@@ -46,6 +48,39 @@ def processes_mentioning(text):
         if needle in cmdline or needle in _read(f"/proc/{entry}/environ"):
             found.append((int(entry), cmdline.replace(b"\0", b" ").decode("utf-8", "replace").strip()))
     return found
+
+
+MASTER_HELLO = re.compile(r"robot (\w+) connected from \S+ \(hello answered in ([0-9.]+) s\)")
+ROBOT_HELLO = re.compile(r"connected to master \S+ as (\w+) .*hello answered in ([0-9.]+) s")
+SESSION_ENDED = re.compile(r"ending robot (\w+)'s session: (.*)")
+
+
+class SessionLog:
+    """What the agents' logs say about sessions (from each log's text after a given offset).
+
+    ``opened``: master-side sessions per robot name; ``ended``: [(name, reason)] sessions the master ended;
+    ``master_hello`` / ``robot_hello``: seconds each accepted hello took, as the master measured it (from reading
+    the hello to answering) and as the robots did (from sending it to reading the answer);
+    ``robot_lost``: robots' "lost the master" lines."""
+
+    def __init__(self, master_text, robot_texts):
+        self.opened = {}
+        self.ended = []
+        self.master_hello = []
+        for match in MASTER_HELLO.finditer(master_text):
+            self.opened[match.group(1)] = self.opened.get(match.group(1), 0) + 1
+            self.master_hello.append(float(match.group(2)))
+        for match in SESSION_ENDED.finditer(master_text):
+            self.ended.append((match.group(1), match.group(2).strip()))
+        self.robot_hello = []
+        self.robot_lost = []
+        for text in robot_texts:
+            self.robot_hello += [float(m.group(2)) for m in ROBOT_HELLO.finditer(text)]
+            self.robot_lost += [line for line in text.splitlines() if "lost the master" in line]
+
+    def reopened(self):
+        """Names whose session was opened more than once."""
+        return sorted(name for name, count in self.opened.items() if count > 1)
 
 
 class Platform:
@@ -122,6 +157,66 @@ class Platform:
         status, space = self.space(ss_name)
         assert status == 200, (status, space)
         return rosgraph.Master("/lifecycle_test", master_uri=space["ros_master_uri"])
+
+    # -- a herd: many robots at once (issue 10) ----------------------------------------------------------
+    @staticmethod
+    def herd_address(index):
+        """The loopback address of the ``index``-th robot of a herd (0-based): 127.0.0.2 ... 127.0.0.254, then
+        127.0.1.2 ..."""
+        return f"127.0.{index // 253}.{index % 253 + 2}"
+
+    def start_herd(self, names, **keys):
+        """Start a robot agent for every name at once (without waiting for any); ``{name: start time}``."""
+        started = {}
+        for index, name in enumerate(names):
+            agent = self.robots.get(name) or self.robot(name, self.herd_address(index), **keys)
+            started[name] = time.monotonic()
+            agent.start(wait=False)
+        return started
+
+    def stop_robots(self, names):
+        """SIGTERM every robot of ``names`` first, then wait for each (a herd stops together, not one by one)."""
+        agents = [self.robots[n] for n in names if self.robots[n].process is not None]
+        for agent in agents:
+            if agent.process.poll() is None:
+                agent.process.send_signal(signal.SIGTERM)
+        for agent in agents:
+            agent.stop()
+
+    def paired_now(self, names):
+        """The names of ``names`` that platform_instance/read shows connected and paired."""
+        rows = self.instances()
+        return {n for n in names if n in rows and rows[n]["connected"] and rows[n]["paired"]}
+
+    def wait_all_paired(self, names, timeout, started=None, interval=0.1):
+        """Wait until every robot of ``names`` is paired; ``{name: seconds from its start to paired}`` (from the
+        first read that showed it). WaitTimeout names how many and which are missing."""
+        started = started or {}
+        paired_at = {}
+        deadline = time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            for name in self.paired_now(names) - set(paired_at):
+                paired_at[name] = now - started.get(name, now)
+            missing = sorted(set(names) - set(paired_at))
+            if not missing:
+                return paired_at
+            if now >= deadline:
+                raise WaitTimeout(f"{len(missing)} of {len(names)} robots not paired within {timeout:.0f} s: "
+                                  f"{', '.join(missing[:10])}{' ...' if len(missing) > 10 else ''}")
+            time.sleep(interval)  # the polling interval, not synchronisation
+
+    def log_marks(self):
+        """Where each agent's log ends now; give it to ``session_log`` to read only what comes after."""
+        marks = {"master": len(self.master.log_text())}
+        marks.update({name: len(agent.log_text()) for name, agent in self.robots.items()})
+        return marks
+
+    def session_log(self, names, marks=None):
+        """A SessionLog of the master's log and the logs of robots ``names`` since ``marks``."""
+        marks = marks or {}
+        return SessionLog(self.master.log_text()[marks.get("master", 0):],
+                          [self.robots[n].log_text()[marks.get(n, 0):] for n in names])
 
     # -- processes --------------------------------------------------------------------------------------
     def leftovers(self):
