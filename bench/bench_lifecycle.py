@@ -10,12 +10,18 @@
     divided among their users) memory of the master agent and every process it started, after all are paired
     minus before any connected, divided by the number of spaces. Target: under 60 MB per service space.
 
+(herd) ``--herd``: N robots (default 100; one S-side and one R-side talker each) started at once against one
+    master (issue 10 item 1): the time until all are paired (target: within 90 s), p50/p99 per robot from its
+    start to paired, sessions lost on the way (target: zero), and the hello answer time under that load, as the
+    robots see it (target: p99 under 1 s). Section ``lifecycle_herd``.
+
 Everything runs on loopback with real agents and real ROS, like the lifecycle tests (``tests.support.lifecycle``).
 Results go to docs/PERFORMANCE.md (section ``lifecycle``); ``main`` returns 1 when a target is missed.
 """
 
 import argparse
 import contextlib
+import math
 import os
 import statistics
 import sys
@@ -37,6 +43,8 @@ from tests.support.processes import ProcessGroup, ros_env  # noqa: E402
 
 TARGET_RATIO = 1.5
 TARGET_MB_PER_SPACE = 60.0
+TARGET_HERD_S = 90.0
+TARGET_HELLO_P99_S = 1.0
 POLL = 0.01
 
 
@@ -208,6 +216,112 @@ def many_robots(plat, count):
     return elapsed, lost, per_space, kinds, (before_rss, before_pss), (master_rss, master_pss)
 
 
+# -- herd: N robots at once ------------------------------------------------------------------------------------
+
+def percentile(values, fraction):
+    """The nearest-rank percentile of ``values`` (``fraction`` 0.5 for p50, 0.99 for p99)."""
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(fraction * len(ordered)) - 1)]
+
+
+def load_average():
+    try:
+        with open("/proc/loadavg") as f:
+            return " / ".join(f.read().split()[:2])
+    except OSError:
+        return "?"
+
+
+def herd(plat, count, timeout):
+    """Start ``count`` robots at once; the figures of the herd section (dict), or BenchFailure."""
+    plat.provision_logic("bench_herd", sn_list=LOGIC)
+    names = [f"herdbot{n}" for n in range(1, count + 1)]
+    for name in names:
+        plat.provision_robot(name, "bench_herd")
+    marks = plat.log_marks()
+    load_before = load_average()
+    started_at = time.monotonic()
+    started = plat.start_herd(names, log_max_bytes=10 * 1024 * 1024)
+    try:
+        per_robot = plat.wait_all_paired(names, timeout=timeout, started=started, interval=0.2)
+        failure = None
+    except WaitTimeout as exc:
+        per_robot, failure = None, str(exc)
+    elapsed = time.monotonic() - started_at
+    sessions = plat.session_log(names, marks)
+    load_after = load_average()
+    plat.stop_robots(names)
+    if failure:
+        lost = len(sessions.ended)
+        raise BenchFailure(f"{failure} (sessions ended on the way: {lost}; robots' lost-the-master lines: "
+                           f"{len(sessions.robot_lost)})")
+    return {"count": count, "elapsed": elapsed, "per_robot": sorted(per_robot.values()), "sessions": sessions,
+            "load": (load_before, load_after)}
+
+
+def herd_section(figures, heartbeat, max_starting):
+    sessions = figures["sessions"]
+    per_robot = figures["per_robot"]
+    robot_hello = sessions.robot_hello or [float("nan")]
+    master_hello = sessions.master_hello or [float("nan")]
+    lost = len(sessions.ended) + len(sessions.reopened())
+    hello_p99 = percentile(robot_hello, 0.99)
+    ok_time = figures["elapsed"] <= TARGET_HERD_S
+    ok_lost = lost == 0 and not sessions.robot_lost
+    ok_hello = hello_p99 < TARGET_HELLO_P99_S
+    ended = "; ".join(f"{n}: {r}" for n, r in sessions.ended[:5])
+    body = f"""
+`bench/bench_lifecycle.py --herd --robots {figures["count"]}`: {figures["count"]} robot agents (127.0.0.2 ...)
+started at once against one master on this machine, heartbeats every {heartbeat:g} s (3 misses), service logic
+one S-side and one R-side `robotics_test/talker.py`; the master builds at most {max_starting} service spaces at
+once (`max_starting_spaces`), the rest wait in arrival order. Load average (1 / 5 min) {figures["load"][0]} before,
+{figures["load"][1]} when all were paired: the robots, their nodes and the master share the 2 cores.
+
+| measure | value | target |
+| --- | --- | --- |
+| time until all {figures["count"]} are paired | **{figures["elapsed"]:.1f} s** | ≤ {TARGET_HERD_S:.0f} s: {"met" if ok_time else "NOT met"} |
+| per robot, start → paired, p50 / p99 | {percentile(per_robot, 0.5):.1f} s / {percentile(per_robot, 0.99):.1f} s | |
+| sessions lost on the way (ended by the master, or made twice; robots' "lost the master") | **{lost}** ({len(sessions.robot_lost)}){": " + ended if ended else ""} | 0: {"met" if ok_lost else "NOT met"} |
+| hello answer time as the robots see it, p50 / p99 / max ({len(sessions.robot_hello)} hellos) | {percentile(robot_hello, 0.5) * 1000:.0f} ms / **{hello_p99 * 1000:.0f} ms** / {max(robot_hello) * 1000:.0f} ms | p99 < {TARGET_HELLO_P99_S * 1000:.0f} ms: {"met" if ok_hello else "NOT met"} |
+| hello answer time inside the master, p50 / p99 | {percentile(master_hello, 0.5) * 1000:.0f} ms / {percentile(master_hello, 0.99) * 1000:.0f} ms | |
+
+Robots' time is from sending hello to reading the answer (it includes the master's event loop being busy
+elsewhere); the master's is from reading the hello to writing the answer (the provisioning lookup in a thread
+and the robot's lock). Per-robot times are read by polling `platform_instance/read` every 0.2 s.
+"""
+    return body, ok_time and ok_lost and ok_hello
+
+
+def main_herd(args):
+    with (contextlib.nullcontext(args.work) if args.work
+          else tempfile.TemporaryDirectory(prefix="bench-herd-")) as tmp:
+        procs = ProcessGroup(log_dir=tmp)
+        keys = {"max_starting_spaces": args.max_starting} if args.max_starting else {}
+        plat = Platform(procs, os.path.join(tmp, "platform"), heartbeat=args.heartbeat,
+                        inbound_ports=0, log_max_bytes=100 * 1024 * 1024, **keys)
+        try:
+            plat.master.start()
+            try:
+                figures = herd(plat, args.robots, args.timeout)
+            except BenchFailure as exc:
+                figures = exc
+            plat.master.stop()
+        finally:
+            try:
+                procs.stop_all()
+            finally:
+                plat.kill_leftovers()
+    from rcm_platform.rcmp_event import default_max_starting_spaces
+    if isinstance(figures, BenchFailure):
+        body, ok = f"\n**Not measured: {figures}**\n", False
+    else:
+        body, ok = herd_section(figures, args.heartbeat, args.max_starting or default_max_starting_spaces())
+    print(body)
+    if not args.no_write:
+        write_section("lifecycle_herd", f"Robot lifecycle: {args.robots} robots started at once", body)
+    return 0 if ok else 1
+
+
 # -- main -------------------------------------------------------------------------------------------------------
 
 def _wait_gone(plat, keep):
@@ -225,7 +339,19 @@ def main(argv=None):
     parser.add_argument("--work", metavar="DIR", help="keep the agents' folders and logs in DIR (default: a "
                                                       "temporary folder, removed afterwards)")
     parser.add_argument("--no-write", action="store_true", help="print, do not write docs/PERFORMANCE.md")
+    parser.add_argument("--herd", action="store_true",
+                        help="only the herd: --robots robots (default 100) started at once (issue 10 item 1)")
+    parser.add_argument("--max-starting", type=int, metavar="N",
+                        help="--herd: the master's max_starting_spaces (default: its own default)")
+    parser.add_argument("--timeout", type=float, default=120.0,
+                        help="--herd: seconds to wait for all robots to pair before giving up (default 120)")
     args = parser.parse_args(argv)
+    if args.herd:
+        if "--robots" not in (argv if argv is not None else sys.argv[1:]):
+            args.robots = 100
+        if args.work:
+            os.makedirs(args.work, exist_ok=True)
+        return main_herd(args)
 
     if args.work:
         os.makedirs(args.work, exist_ok=True)
