@@ -9,6 +9,7 @@ except the last, which revokes robot2.
 
 import json
 import os
+import signal
 
 import pytest
 
@@ -145,14 +146,32 @@ def test_a_cut_link_tears_the_robot_down_within_three_heartbeats_and_it_pairs_ag
 
 
 def _commands(host):
-    commands = []
-    for pid in host.pids():
-        try:
-            with open(f"/proc/{pid}/cmdline", "rb") as f:
-                commands.append(f.read().replace(b"\0", b" ").decode("utf-8", "replace"))
-        except OSError:
-            pass
-    return commands
+    return [_cmdline(pid) for pid in host.pids()]
+
+
+def _openvpn_pids(host):
+    return [pid for pid in host.pids() if _cmdline(pid).startswith("/usr/sbin/openvpn ")]
+
+
+def _cmdline(pid):
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode("utf-8", "replace")
+    except OSError:
+        return ""
+
+
+def test_the_agent_restarts_its_openvpn_when_it_dies(platform):
+    p = platform
+    robot1 = p.robots["robot1"]
+    [pid] = _openvpn_pids(robot1.host)
+    os.kill(pid, signal.SIGKILL)
+    wait_until(lambda: "managed VPN: OpenVPN ended (killed by signal 9" in robot1.log_text(), timeout=10,
+               message="the robot's agent to log that its OpenVPN died")
+    wait_until(lambda: _openvpn_pids(robot1.host) not in ([], [pid]), timeout=20,
+               message="the robot's agent to start OpenVPN again")
+    p.wait_state("robot1", True, True, timeout=60)
+    assert robot1.vpn_address() == "198.51.100.2"
 
 
 def test_a_restarted_master_pairs_both_robots_again(platform):
