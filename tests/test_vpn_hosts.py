@@ -13,7 +13,9 @@ import signal
 
 import pytest
 
+from tests.support.firos import write_config
 from tests.support.hosts import Lan
+from tests.support.processes import ros_env
 from tests.support.polling import wait_until
 from tests.support.vpn_hosts import HEARTBEAT, MISSES, PYTHON, REPO, VpnPlatform
 
@@ -23,6 +25,18 @@ MASTER_VPN = "198.51.100.1"
 ROBOT_LOGIC = {"slg_name": "vpn_talk", "sn_list": [
     {"sn_package": "robotics_test", "sn_type": "talker.py", "sn_name": "r_talker", "sn_params": "", "sn_side": "R"},
 ], "sl_list": []}
+BROKER_PORT = 1026
+FIROS_PORT = 10100          # the master's first inbound open port (its default inbound_open_ports)
+
+
+def firos_logic(config_dir):
+    """robot2's service logic: FIROS on the master (S) and, on the robot (R), a talker publishing the seed's s1."""
+    return {"slg_name": "vpn_firos", "sn_list": [
+        {"sn_package": "robotics_test", "sn_type": "talker.py", "sn_name": "r_talker",
+         "sn_params": "_topic:=/end_end_test/s1", "sn_side": "R"},
+        {"sn_package": "firos", "sn_type": "core.py", "sn_name": "firos", "sn_params": f"--config {config_dir}",
+         "sn_side": "S"},
+    ], "sl_list": []}
 # a hello over the agent protocol (docs/PROTOCOL.md), from whichever host runs it; prints the answer frame
 HELLO = r"""
 import json, socket, struct, sys
@@ -59,13 +73,46 @@ def platform(tmp_path_factory):
         p = VpnPlatform(lan, root)
         p.add_robot("robot1")
         p.add_robot("robot2")
+        # the stand-in broker on the office host (the fourth host), FIROS's configuration pointing at it
+        p.broker = p.office.start([PYTHON, "-m", "tests.ngsi_broker", "--host", p.office.address, "--port",
+                                   str(BROKER_PORT)], cwd=REPO, name="ngsi-broker")
+        config_dir = write_firos_config(str(root / "firos-config"), p.office.address)
         p.master.start()
         p.wait_rdapi()
         p.rdapi_ok("POST", "/service_logic/provisioning", ROBOT_LOGIC)
-        for name in ("robot1", "robot2"):
-            p.rdapi_ok("POST", "/platform_instance/provisioning", {"pi_name": name, "pi_service_logic": "vpn_talk"})
+        p.rdapi_ok("POST", "/service_logic/provisioning", firos_logic(config_dir))
+        for name, logic in (("robot1", "vpn_talk"), ("robot2", "vpn_firos")):
+            p.rdapi_ok("POST", "/platform_instance/provisioning", {"pi_name": name, "pi_service_logic": logic})
             p.robots[name].start()
         yield p
+
+
+def write_firos_config(config_dir, broker_address):
+    """FIROS's configuration: the broker on another host; notifications to the address FIROS uses towards it."""
+    write_config(config_dir, BROKER_PORT)
+    path = os.path.join(config_dir, "config.json")
+    with open(path) as f:
+        config = json.load(f)
+    block = config[config["environment"]]
+    block["contextbroker"]["address"] = broker_address
+    del block["endpoint"]            # interface "public": the master's eth0 address, as the broker sees it
+    with open(path, "w") as f:
+        json.dump(config, f, indent=2)
+    return config_dir
+
+
+def broker(p, method, path, body=None):
+    """(status, JSON or text) of one call to the stand-in broker, from the office host."""
+    argv = ["curl", "-s", "-S", "--max-time", "5", "-o", "-", "-w", "\n%{http_code}", "-X", method]
+    if body is not None:
+        argv += ["-H", "Content-Type: application/json", "--data-binary", json.dumps(body)]
+    argv.append(f"http://{p.office.address}:{BROKER_PORT}{path}")
+    result = p.office.run(argv, check=False, stderr=None)
+    text, _, status = result.stdout.rpartition("\n")
+    try:
+        return int(status), json.loads(text) if text else None
+    except ValueError:
+        return (int(status) if status.isdigit() else None), text
 
 
 def listening(host, port):
@@ -110,6 +157,31 @@ def test_the_seeds_curl_commands_answer_on_the_masters_eth0(platform):
     rows = {row["pi_name"]: row for row in p.rdapi_ok("GET", "/platform_instance/read")}
     assert {"robot1", "robot2"} <= set(rows)
     assert rows["robot1"]["paired"] and rows["robot2"]["paired"]
+
+
+def test_firos_in_a_service_space_reaches_a_broker_on_another_host_and_its_notifications_come_back(platform):
+    p = platform
+    # robot2's talker (on the robot) -> its space's FIROS (on the master) -> the broker (on the office host)
+    def s1():
+        status, value = broker(p, "GET", "/v2/entities/end_end_test/attrs/s1?type=ROBOT")
+        return value if status == 200 else None
+    value = wait_until(s1, timeout=30, interval=0.5, message="s1 of end_end_test in the broker")
+    assert value["type"] == "std_msgs.msg.String" and value["value"]["data"] == "hello from /r_talker"
+    # FIROS subscribed with the master's eth0 address and its inbound port
+    def subscription_urls():
+        status, subs = broker(p, "GET", "/v2/subscriptions")
+        return [s["notification"]["http"]["url"] for s in subs] if status == 200 else []
+    urls = wait_until(subscription_urls, timeout=20, interval=0.5, message="FIROS's subscription in the broker")
+    assert all(url.startswith(f"http://{p.master_address}:{FIROS_PORT}/") for url in urls), urls
+    # the seed's command: an update in the broker, notified to FIROS through the inbound port, published in ROS
+    status, _ = broker(p, "POST", "/v2/op/update", {"actionType": "append", "entities": [
+        {"id": "end_end_test", "type": "ROBOT", "p1": {"type": "std_msgs.msg.String", "value": {"data": "4242"}},
+         "COMMAND": {"type": "COMMAND", "value": ["p1"]}}]})
+    assert status == 204
+    env = ros_env({"ROS_IP": MASTER_VPN, "ROS_LOG_DIR": os.path.join(p.root, "echo-roslog")},
+                  master_uri=space_master_uri(p, "robot2"))
+    echo = p.master_host.run(["rostopic", "echo", "-n", "1", "/end_end_test/p1"], env=env, timeout=30, check=False)
+    assert echo.returncode == 0 and "data: \"4242\"" in echo.stdout, echo.stdout
 
 
 def test_a_hello_for_robot1_from_robot2s_address_is_refused_and_robot1_stays_paired(platform):
