@@ -226,3 +226,14 @@ def test_ld_ids_name_the_robot_and_other_ids_are_ignored():
     body = ld_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "x"}))
     body["data"][0]["id"] = "bot"
     assert firos.handle_notification(body) == {}
+
+
+def test_an_ld_json_notification_with_context_members_is_read_like_any_other():
+    firos = make("ld")
+    body = ld_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "x"}))
+    body["@context"] = "https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld"
+    body["data"][0]["@context"] = ["https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld"]
+    body["data"][0]["cmd"] = [{"type": "Property", "value": {"data": "other"}, "datasetId": "urn:x:1"},
+                              dict(body["data"][0]["cmd"])]          # several instances: the default one counts
+    assert firos.handle_notification(body) == {"bot": ["cmd"]}
+    assert firos.topics.published[0][2].data == "x"

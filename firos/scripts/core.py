@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
-"""FIROS: maps the topics of ROS robots to entities of an NGSI context broker (Orion) and broker commands back to
-ROS topics (CONTRACTS §3). Run as `rosrun firos core.py [-P PORT] [--config DIR]`.
+"""FIROS: maps the topics of ROS robots to entities of an NGSI context broker (Orion, or an NGSI-LD broker such as
+Orion-LD) and broker commands back to ROS topics (CONTRACTS §3).
+Run as `rosrun firos core.py [-P PORT] [--config DIR]`.
 
 This file only assembles the node: command line, configuration (one clear line and exit 1 when it is wrong),
 logging (stderr, /rosout and the node's ROS log file), the notification address, the parts in `include/`, the discovery loop in the main thread, and an

@@ -3,7 +3,8 @@
 Owns the `Settings` of the chosen environment block (CONTRACTS §3), the duration syntax the subscription keys
 accept (seconds as a number, or ISO 8601 such as "PT0S", "PT5M", "P1D"), and `ConfigError`, whose text is one
 line naming the file and the problem. The keys of the block are one table (`KEYS`: where the key sits, which
-Settings field it fills, which parser checks it); the few rules between keys follow it. Nothing here touches ROS or the network.
+Settings field it fills, which parser checks it); the few rules between keys follow it. Nothing here touches ROS
+or the network.
 """
 
 import json
