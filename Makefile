@@ -8,10 +8,11 @@ WS := build/rcmp_ws
 OVERLAY := $(WS)/devel/setup.bash
 PYTEST_ARGS ?=
 
-.PHONY: help deps build test test-fast demo bench dist clean
+.PHONY: help deps build test test-fast demo demo-hosts bench dist clean
 
 help:
 	@echo "make demo   - start a master and a robot on this machine (loopback) and pair them"
+	@echo "make demo-hosts - a master and two robots, each in a network namespace, over the platform's own VPN"
 	@echo "make test   - install what the tests need, build the catkin workspace, run every test"
 	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
 	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
@@ -34,6 +35,9 @@ test-fast: build
 
 demo: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo
+
+demo-hosts: deps build
+	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo_hosts
 
 bench: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all

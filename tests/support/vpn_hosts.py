@@ -17,6 +17,7 @@ under ``root`` (a test's temporary folder).
 import json
 import os
 import signal
+import subprocess
 
 from .hosts import VPN_SUBNET
 from .polling import wait_until
@@ -83,6 +84,7 @@ class VpnPlatform:
     """A master, its robots and an office machine as hosts of ``lan``, over the platform's own VPN."""
 
     def __init__(self, lan, root, heartbeat=HEARTBEAT, master_keys=None):
+        """``heartbeat``: seconds between heartbeats written into every agent's configuration (None: defaults)."""
         self.lan = lan
         self.root = str(root)
         self.heartbeat = heartbeat
@@ -90,7 +92,7 @@ class VpnPlatform:
         self.office = lan.add_host("office")
         home = os.path.join(self.root, "master")
         os.makedirs(home)
-        keys = {"heartbeat_interval": heartbeat, "heartbeat_misses": MISSES}
+        keys = {"heartbeat_interval": heartbeat, "heartbeat_misses": MISSES} if heartbeat else {}
         keys.update(master_keys or {})
         self._write_cfg(os.path.join(home, ".init.cfg"), keys)
         self.master = Agent(self, self.master_host, home, "master")
@@ -119,8 +121,9 @@ class VpnPlatform:
         os.makedirs(os.path.join(home, "vpn"), mode=0o700)
         result = self.vpn("client", name, "-o", os.path.join(home, "vpn", "client.conf"))
         assert result.returncode == 0, result.stdout
-        settings = {"name": name, "robot": "yes", "heartbeat_interval": self.heartbeat,
-                    "heartbeat_misses": MISSES}
+        settings = {"name": name, "robot": "yes"}
+        if self.heartbeat:
+            settings.update(heartbeat_interval=self.heartbeat, heartbeat_misses=MISSES)
         settings.update(keys)
         self._write_cfg(os.path.join(home, "init.cfg"), settings)
         agent = Agent(self, host, home, "robot")
@@ -134,7 +137,7 @@ class VpnPlatform:
         if body is not None:
             argv += ["-H", "Content-Type: application/json", "--data-binary", json.dumps(body)]
         argv.append(f"http://{self.master_address}{path}")
-        result = self.office.run(argv, check=False, stderr=None, timeout=timeout + 5)
+        result = self.office.run(argv, check=False, stderr=subprocess.DEVNULL, timeout=timeout + 5)
         text, _, status = result.stdout.rpartition("\n")
         if result.returncode != 0 or not status.isdigit():
             return None, text
