@@ -4,6 +4,13 @@ Format: {"<robot regex>": {"publisher": [topic regexes], "subscriber": [topic re
 point of view: publisher = broker → ROS, subscriber = ROS → broker. Robot names and topic names (relative to
 the robot's namespace, e.g. "move_base/goal") must match a regex entirely (re.fullmatch). Owns validation,
 matching and the in-memory edits of the HTTP API (write merges, remove deletes, restore reloads the file).
+
+Python's `re` backtracks, and there is no `re2` in Debian to swap in, so a pattern is accepted only in shapes
+whose matching cost stays small (docs/SECURITY.md, "FIROS"): at most MAX_PATTERN characters, no backreferences,
+no repetition inside a repetition, no alternation inside a repetition (`(a|a)*b` costs 2^n), and repetitions
+whose widths multiplied stay within what two open-ended ones give (`.*foo.*` yes, `.*a.*b.*c` no: each
+open-ended repetition multiplies the worst cost by the name's length), checked on the parsed pattern. Names
+longer than MAX_NAME are never matched, so the worst accepted pattern costs milliseconds.
 """
 
 import copy
@@ -11,9 +18,20 @@ import os
 import re
 import threading
 
+try:                                        # Python 3.11+: the parser of re, with its opcodes
+    import re._constants as sre
+    import re._parser as sre_parse
+except ImportError:                         # older Pythons name them sre_constants / sre_parse
+    import sre_constants as sre
+    import sre_parse
+
 from include.config import ConfigError, read_json
 
 KINDS = ("publisher", "subscriber")
+MAX_PATTERN = 256
+MAX_NAME = 256       # robot and topic names longer than this match nothing
+MAX_COST = (MAX_NAME + 1) ** 2   # the product of the repetitions' widths: two open-ended ones at most
+_REPEATS = (sre.MAX_REPEAT, sre.MIN_REPEAT, sre.POSSESSIVE_REPEAT)
 
 
 class WhitelistError(ValueError):
@@ -47,10 +65,54 @@ def validate(data):
 
 
 def _compile(pattern, what):
+    if len(pattern) > MAX_PATTERN:
+        raise WhitelistError(f"{what[:80]}... is longer than {MAX_PATTERN} characters")
     try:
-        return re.compile(pattern)
-    except re.error as exc:
+        compiled = re.compile(pattern)
+        tree = sre_parse.parse(pattern)
+    except (re.error, RecursionError, OverflowError) as exc:
         raise WhitelistError(f"{what} is not a valid regular expression: {exc}") from None
+    problem = costly_shape(tree)
+    if problem:
+        raise WhitelistError(f"{what} is refused: {problem}; its matching time could explode")
+    return compiled
+
+
+def costly_shape(tree):
+    """Why a parsed pattern could backtrack badly (a sentence), or None when its shape is safe."""
+    cost = 1
+
+    def walk(items, repeated):
+        nonlocal cost
+        for op, av in items:
+            if op in _REPEATS:
+                low, high, sub = av
+                if high > 1:
+                    if repeated:
+                        return "a repetition inside a repetition"
+                    cost *= min(high, MAX_NAME) + 1
+                    if cost > MAX_COST:
+                        return "too many repetitions (at most two open-ended ones like .*)"
+                problem = walk(sub, repeated or high > 1)
+            elif op == sre.BRANCH:
+                if repeated:
+                    return "an alternation inside a repetition (use a character class like [ab])"
+                problem = next((p for p in (walk(branch, repeated) for branch in av[1]) if p), None)
+            elif op == sre.SUBPATTERN:
+                problem = walk(av[-1], repeated)
+            elif op in (sre.ASSERT, sre.ASSERT_NOT):
+                problem = walk(av[1], repeated)
+            elif op == sre.ATOMIC_GROUP:
+                problem = walk(av, repeated)
+            elif op in (sre.GROUPREF, sre.GROUPREF_EXISTS):
+                return "a backreference"
+            else:
+                problem = None
+            if problem:
+                return problem
+        return None
+
+    return walk(tree.data, False)
 
 
 class Whitelist:
@@ -122,12 +184,16 @@ class Whitelist:
             self._set(merged)
 
     def robot_allowed(self, robot):
+        if len(robot) > MAX_NAME:
+            return False
         with self._lock:
             return any(rx.fullmatch(robot) for rx, _ in self._compiled)
 
     def topic_kinds(self, robot, topic):
         """The set of kinds ("publisher", "subscriber") under which ``topic`` (relative name) is listed."""
         kinds = set()
+        if len(robot) > MAX_NAME or len(topic) > MAX_NAME:
+            return kinds
         with self._lock:
             for rx, topics in self._compiled:
                 if not rx.fullmatch(robot):
