@@ -55,6 +55,30 @@ def notification_address(settings):
     return addresses[0]["addr"], port
 
 
+def listen_addresses(settings, notify_host):
+    """(required, optional) addresses of the HTTP API: ``server.address`` when configured; else the platform
+    address the agent gives FIROS (``ROS_IP``), and, optionally (when it is an address of this machine), the
+    address the broker is told to notify. Never a wildcard unless configured so."""
+    if settings.server_addresses:
+        return list(settings.server_addresses), []
+    platform = os.environ.get("ROS_IP", "").strip()
+    if not platform:
+        return [notify_host], []
+    return [platform], [] if notify_host == platform else [notify_host]
+
+
+def open_servers(http, settings, notify_host):
+    """The listening servers; OSError (its strerror naming the address) when a required one cannot be bound."""
+    required, optional = listen_addresses(settings, notify_host)
+    if optional:
+        try:
+            return http.make_servers(None, settings.server_port, required + optional, settings.admin_token)
+        except OSError as exc:
+            log.info("not listening on %s too (%s): the broker's notifications reach FIROS only if they come "
+                     "to %s", optional[0], exc.strerror, ", ".join(required))
+    return http.make_servers(None, settings.server_port, required, settings.admin_token)
+
+
 def load(args):
     settings = load_settings(args.config)
     if args.port is not None:
@@ -107,9 +131,9 @@ def main(argv=None):
     from include.topics import TopicHandler
 
     try:
-        httpd = http.make_server(None, settings.server_port)
+        servers = open_servers(http, settings, address)
     except OSError as exc:
-        print(f"firos: cannot listen on port {settings.server_port}: {exc.strerror}", file=sys.stderr)
+        print(f"firos: cannot listen on {exc.strerror}", file=sys.stderr)
         return 1
 
     stop = threading.Event()
@@ -132,13 +156,16 @@ def main(argv=None):
     holder["firos"] = firos
     control = RosControl(firos)
     firos.events = control
-    httpd.RequestHandlerClass.firos = firos
+    for httpd in servers:
+        httpd.RequestHandlerClass.firos = firos
 
     sender.start()
     subscriptions.start()
     control.start()
-    http.serve_in_thread(httpd)
-    log.info("FIROS up: HTTP on port %d, broker %s:%d (NGSI %s), notifications to %s", settings.server_port,
+    for httpd in servers:
+        http.serve_in_thread(httpd)
+    log.info("FIROS up: HTTP on %s port %d, broker %s:%d (NGSI %s), notifications to %s",
+             ", ".join(h.server_address[0] for h in servers), settings.server_port,
              settings.broker_address, settings.broker_port, settings.ngsi_version, url)
 
     while not stop.is_set() and not rospy.is_shutdown():
@@ -154,8 +181,7 @@ def main(argv=None):
             stop.wait(settings.discovery_interval)
 
     log.info("FIROS stopping: removing subscriptions and entities")
-    httpd.shutdown()
-    httpd.server_close()
+    http.close_servers(servers)
     control.stop()
     firos.disconnect_all()
     sender.wait_idle(3.0)

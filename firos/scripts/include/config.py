@@ -7,6 +7,7 @@ Settings field it fills, which parser checks it); the few rules between keys fol
 or the network.
 """
 
+import ipaddress
 import json
 import os
 import re
@@ -41,6 +42,8 @@ class Settings:
     config_dir: str
     environment: str
     server_port: int = 10100
+    server_addresses: list | None = None    # (ext) addresses the HTTP API listens on; None = core.py's default
+    admin_token: str | None = None          # (ext) whitelist/robot edits need it, from anywhere, when set
     broker_address: str = ""
     broker_port: int = 1026
     throttling: float = 0.0                 # seconds
@@ -160,6 +163,26 @@ def _non_negative(value):
     return float(value)
 
 
+def _addresses(value):
+    """One IP address or a list of them (``0.0.0.0`` only when written so)."""
+    values = value if isinstance(value, list) else [value]
+    if not values or not all(isinstance(v, str) and v.strip() for v in values):
+        raise _Bad(f"must be an IP address or a list of them, not {value!r}")
+    result = []
+    for text in values:
+        try:
+            result.append(str(ipaddress.ip_address(text.strip())))
+        except ValueError:
+            raise _Bad(f"must be an IP address or a list of them, not {text!r}") from None
+    return list(dict.fromkeys(result))
+
+
+def _token(value):
+    if not isinstance(value, str) or len(value) < 16 or not value.isprintable() or " " in value:
+        raise _Bad("must be a secret of at least 16 printable characters without spaces")
+    return value
+
+
 def _service_path(value):
     value = _text("a non-empty string")(value)
     if not value.startswith("/"):
@@ -171,6 +194,8 @@ def _service_path(value):
 # alternatives, the later place winning. contextbroker.address is required; the rest default to Settings'.
 KEYS = (
     (("server", "port"), "server_port", _port),
+    (("server", "address"), "server_addresses", _addresses),
+    (("server", "admin_token"), "admin_token", _token),
     (("contextbroker", "address"), "broker_address", _text("a host name or address")),
     (("contextbroker", "port"), "broker_port", _port),
     (("contextbroker", "subscription", "throttling"), "throttling", _duration),

@@ -64,7 +64,7 @@ class FirosHandler(BaseHTTPRequestHandler):
     server_version = "FIROS/1.0"
     disable_nagle_algorithm = True   # headers and body are two writes: without this, delayed ACKs add 40 ms
     timeout = REQUEST_DEADLINE
-    firos = None            # set on the subclass made by make_server
+    firos = None            # set on the subclass made by make_servers
     admin_token = None      # server.admin_token: whitelist edits need it (from anywhere) when set
     stats = None
     deadline = 0.0
@@ -268,38 +268,77 @@ class FirosHandler(BaseHTTPRequestHandler):
         return 200, stats
 
 
-class FirosHTTPServer(HTTPServer):
-    """An HTTP server with a fixed pool of workers: a bounded number of threads whatever the clients do."""
+class WorkerPool:
+    """A fixed number of threads serving accepted connections from a bounded queue, shared by FIROS's listeners;
+    it also counts the connections of each client address."""
 
-    allow_reuse_address = True
-
-    def __init__(self, address, handler, workers=WORKERS, queue_limit=QUEUE_LIMIT, per_client=PER_CLIENT):
-        if ":" in address[0]:
-            self.address_family = socket.AF_INET6
-        super().__init__(address, handler)
+    def __init__(self, workers=WORKERS, queue_limit=QUEUE_LIMIT, per_client=PER_CLIENT):
         self.per_client = per_client
         self._waiting = queue.Queue(maxsize=queue_limit)
         self._clients = collections.Counter()
-        self._clients_lock = threading.Lock()
-        self._workers = [threading.Thread(target=self._work, name=f"firos-http-{i}", daemon=True)
+        self._lock = threading.Lock()
+        self._threads = [threading.Thread(target=self._work, name=f"firos-http-{i}", daemon=True)
                          for i in range(workers)]
-        for worker in self._workers:
-            worker.start()
+        for thread in self._threads:
+            thread.start()
+
+    def submit(self, server, request, client_address):
+        """Queue a connection; False when the pool or this client is full (the caller refuses it)."""
+        client = client_address[0]
+        with self._lock:
+            if self._clients[client] >= self.per_client:
+                return False
+            self._clients[client] += 1
+        try:
+            self._waiting.put_nowait((server, request, client_address))
+            return True
+        except queue.Full:
+            self._release(client)
+            return False
+
+    def _release(self, client):
+        with self._lock:
+            self._clients[client] -= 1
+            if self._clients[client] <= 0:
+                del self._clients[client]
+
+    def _work(self):
+        while True:
+            item = self._waiting.get()
+            if item is None:
+                return
+            server, request, client_address = item
+            try:
+                server.finish_request(request, client_address)
+            except Exception as exc:  # a client that vanished mid-answer: not worth a traceback
+                log.debug("connection from %s ended: %s", client_address[0], exc)
+            finally:
+                server.shutdown_request(request)
+                self._release(client_address[0])
+
+    def close(self):
+        for _ in self._threads:
+            try:
+                self._waiting.put(None, timeout=1.0)
+            except queue.Full:
+                break
+
+
+class FirosHTTPServer(HTTPServer):
+    """One listening address; its connections are served by the shared ``WorkerPool``, so the number of threads
+    stays fixed whatever the clients do."""
+
+    allow_reuse_address = True
+
+    def __init__(self, address, handler, pool):
+        if ":" in address[0]:
+            self.address_family = socket.AF_INET6
+        self.pool = pool
+        super().__init__(address, handler)
 
     def process_request(self, request, client_address):
-        """Hand the connection to a worker, or refuse it at once when the pool or its client is full."""
-        client = client_address[0]
-        with self._clients_lock:
-            over = self._clients[client] >= self.per_client
-            if not over:
-                self._clients[client] += 1
-        if not over:
-            try:
-                self._waiting.put_nowait((request, client_address))
-                return
-            except queue.Full:
-                self._release(client)
-        self._refuse(request)
+        if not self.pool.submit(self, request, client_address):
+            self._refuse(request)
 
     def _refuse(self, request):
         try:
@@ -311,39 +350,34 @@ class FirosHTTPServer(HTTPServer):
             pass
         self.shutdown_request(request)
 
-    def _release(self, client):
-        with self._clients_lock:
-            self._clients[client] -= 1
-            if self._clients[client] <= 0:
-                del self._clients[client]
 
-    def _work(self):
-        while True:
-            item = self._waiting.get()
-            if item is None:
-                return
-            request, client_address = item
-            try:
-                self.finish_request(request, client_address)
-            except Exception as exc:  # a client that vanished mid-answer: not worth a traceback
-                log.debug("connection from %s ended: %s", client_address[0], exc)
-            finally:
-                self.shutdown_request(request)
-                self._release(client_address[0])
-
-    def server_close(self):
-        super().server_close()
-        for _ in self._workers:
-            try:
-                self._waiting.put(None, timeout=1.0)
-            except queue.Full:
-                break
-
-
-def make_server(firos, port, host, admin_token=None):
-    """The server on ``host``:``port`` (never a wildcard unless configured so); ``admin_token`` see above."""
+def make_servers(firos, port, hosts, admin_token=None, pool=None):
+    """One server per address in ``hosts`` (never a wildcard unless configured so), sharing one worker pool;
+    OSError names the address that cannot be bound (the servers already made are closed)."""
     handler = type("BoundFirosHandler", (FirosHandler,), {"firos": firos, "admin_token": admin_token})
-    return FirosHTTPServer((host, port), handler)
+    pool = pool or WorkerPool()
+    servers = []
+    try:
+        for host in hosts:
+            try:
+                servers.append(FirosHTTPServer((host, port), handler, pool))
+            except OSError as exc:
+                raise OSError(exc.errno, f"{host}:{port}: {exc.strerror}") from None
+    except OSError:
+        for server in servers:
+            server.server_close()
+        pool.close()
+        raise
+    return servers
+
+
+def close_servers(servers):
+    """Stop serving (each was started with serve_in_thread) and stop the shared pool."""
+    for server in servers:
+        server.shutdown()
+        server.server_close()
+    if servers:
+        servers[0].pool.close()
 
 
 def serve_in_thread(server):
