@@ -20,7 +20,7 @@ from include.config import ConfigError
 from include.discovery import TopicInfo
 from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError, \
     parse_notification
-from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, \
+from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, check_robot_name, \
     attribute_type_to_message_type, message_type_to_attribute_type, relative_topic_to_attribute, \
     split_firosstamp
 from include.ros_conversion import ConversionError, dict_to_message, load_message_class
@@ -42,6 +42,14 @@ def _message_type(attr_type):
         return attribute_type_to_message_type(attr_type)
     except NgsiEncodingError:
         return None
+
+
+def _robot_name(name):
+    """ApiError 400 (nothing kept, the name shortened in the answer) for a name no robot can have."""
+    try:
+        return check_robot_name(name)
+    except NgsiEncodingError as exc:
+        raise ApiError(400, str(exc)) from None
 
 
 class ApiError(Exception):
@@ -104,6 +112,8 @@ class Firos:
 
     def connect(self, name=None):
         """Connect ``name`` (or every whitelisted robot of the graph) from the ROS graph; returns names."""
+        if name is not None:
+            _robot_name(name)
         with self._membership:
             with self._lock:
                 if name is None:
@@ -207,12 +217,15 @@ class Firos:
         return [(rx, entry) for rx, entry in self.whitelist.snapshot().items() if re.fullmatch(rx, name)]
 
     def disconnect(self, name):
-        """Remove the robot: its entity, its subscription, its topics. ApiError 404 if it is not connected."""
+        """Remove the robot: its entity, its subscription, its topics; discovery leaves it alone afterwards.
+        ApiError 400 for a name that cannot be a robot's, 404 if it is not connected; either way nothing about
+        the name is kept."""
+        _robot_name(name)
         with self._membership:
-            with self._lock:
-                self.disabled.add(name)
             if not self._drop(name):
                 raise ApiError(404, f"robot {name!r} is not connected")
+            with self._lock:
+                self.disabled.add(name)
         log.info("robot %s disconnected", name)
 
     def _drop(self, name):
@@ -306,7 +319,10 @@ class Firos:
             if named is not None and named != msg_type:
                 raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but topic "
                                     f"{topic} carries {message_type_to_attribute_type(msg_type)}")
-        elif "publisher" in self.whitelist.topic_kinds(robot.name, relative):
+        elif self.whitelist.configured_literal(robot.name, relative) \
+                and "publisher" in self.whitelist.topic_kinds(robot.name, relative):
+            # not in the ROS graph: only a plain name of the configured whitelist.json (the seed's p1), never a
+            # topic an HTTP whitelist edit added; the type is the command's until a node uses the topic
             msg_type = _message_type(attr_type)
             if msg_type is None:
                 raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r}, "
@@ -346,6 +362,7 @@ class Firos:
         return result
 
     def read_robot(self, name):
+        _robot_name(name)
         with self._lock:
             known = name in self.robots
         try:

@@ -64,6 +64,7 @@ class NgsiEncodingError(ValueError):
 FORBIDDEN_CHARACTERS = "<>\"'=;()"
 
 FIROSSTAMP = "firosstamp"
+MAX_NAME_LENGTH = 256
 
 # NGSI-LD entity ids are URIs; FIROS names robots urn:ngsi-ld:<type>:<robot> (ETSI GS CIM 009, annex A.3).
 LD_ID_PREFIX = "urn:ngsi-ld:"
@@ -208,8 +209,17 @@ def _walk(obj, convert, where, refuse_nonfinite):
 # ---------------------------------------------------------------------------------------------------------------
 
 def _check_robot(robot):
-    if not isinstance(robot, str) or not _NAME_SEGMENT_RE.match(robot):
-        raise NgsiEncodingError("robot name %r is not a ROS name segment (letters, digits, underscores)" % (robot,))
+    if not isinstance(robot, str) or len(robot) > MAX_NAME_LENGTH or not _NAME_SEGMENT_RE.match(robot):
+        shown = robot[:60] + "..." if isinstance(robot, str) and len(robot) > 60 else robot
+        raise NgsiEncodingError("robot name %r is not a ROS name segment (letters, digits, underscores; at most "
+                                "%d characters)" % (shown, MAX_NAME_LENGTH))
+
+
+def check_robot_name(robot):
+    """``robot`` when it can be a robot's name (one ROS name segment, at most MAX_NAME_LENGTH characters);
+    NgsiEncodingError otherwise. Names from requests go through this before they are used or logged."""
+    _check_robot(robot)
+    return robot
 
 
 def relative_topic_to_attribute(relative):

@@ -329,6 +329,7 @@ class FirosHTTPServer(HTTPServer):
     stays fixed whatever the clients do."""
 
     allow_reuse_address = True
+    request_queue_size = 128        # the listen backlog: a burst of connections waits for the accept loop
 
     def __init__(self, address, handler, pool):
         if ":" in address[0]:

@@ -31,6 +31,7 @@ KINDS = ("publisher", "subscriber")
 MAX_PATTERN = 256
 MAX_NAME = 256       # robot and topic names longer than this match nothing
 MAX_COST = (MAX_NAME + 1) ** 2   # the product of the repetitions' widths: two open-ended ones at most
+_PLAIN_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
 _REPEATS = (sre.MAX_REPEAT, sre.MIN_REPEAT, sre.POSSESSIVE_REPEAT)
 
 
@@ -123,10 +124,12 @@ class Whitelist:
         self._lock = threading.Lock()
         self._data = {}
         self._compiled = []
+        self._configured = {}           # the whitelist as configured (file or constructor), not HTTP edits
         if data is None:
             self.restore()
         else:
             self._set(validate(data))
+            self._configured = self._data
 
     @classmethod
     def load(cls, config_dir):
@@ -143,6 +146,7 @@ class Whitelist:
             raise ConfigError(self.path, str(exc)) from None
         with self._lock:
             self._set(clean)
+            self._configured = clean
 
     def _set(self, clean):
         self._data = clean
@@ -182,6 +186,16 @@ class Whitelist:
                 if not any(merged[robot].get(k) for k in KINDS):
                     del merged[robot]
             self._set(merged)
+
+    def configured_literal(self, robot, topic, kind="publisher"):
+        """True when the configured whitelist (whitelist.json as last loaded, never an HTTP edit) lists ``topic``
+        under ``kind`` as a plain name (no regex) for a robot regex that matches ``robot``."""
+        if len(robot) > MAX_NAME or not _PLAIN_TOPIC.fullmatch(topic):
+            return False
+        with self._lock:
+            configured = self._configured       # replaced whole on restore, never changed in place
+        return any(topic in entry.get(kind, []) and re.fullmatch(robot_rx, robot)
+                   for robot_rx, entry in configured.items())
 
     def robot_allowed(self, robot):
         if len(robot) > MAX_NAME:
