@@ -368,7 +368,7 @@ class MasterAgent(service.Service):
         try:
             name = validate_name(body["name"], "name")
         except BadRequest as exc:
-            log.warning("refused hello from %s: %s", peer.remote, exc)
+            self._log_refusal("refused hello from %s: %s", peer.remote, exc)
             raise ic.Refused(f"hello: {exc}", code="bad_request") from None
         if not self.running:
             raise ic.Refused("the master is stopping", code="gone")
@@ -381,7 +381,7 @@ class MasterAgent(service.Service):
         if self.expected_address is not None:
             expected = yield defer.maybeDeferred(self.expected_address, name)
             if expected is not None and expected != peer.host:
-                log.warning("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
+                self._log_refusal("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
                             expected)
                 raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
                                  f"{peer.host}", code="wrong_address")
@@ -391,6 +391,12 @@ class MasterAgent(service.Service):
         self._queue_space(peer.info["session"], pi)
         return {"accepted": True, "master": self.config.name, "heartbeat_interval": self.config.heartbeat_interval,
                 "heartbeat_misses": self.config.heartbeat_misses}
+
+    def _log_refusal(self, message, *args):
+        """A refused hello goes into the log through the listener's rate limit: a stranger repeating hellos
+        must not roll the log over."""
+        factory = getattr(self.listening, "factory", None)
+        (factory.warn_limited if factory is not None else log.warning)(message, *args)
 
     def _refuse_later(self, peer):
         """Close a refused robot's connection once the answer is written."""
@@ -402,15 +408,15 @@ class MasterAgent(service.Service):
         (None when the connection closed meanwhile)."""
         pi = yield threads.deferToThread(self.data.platform_instance, name)
         if pi is None:
-            log.info("refused hello from %s (%s): not provisioned", name, peer.remote)
+            self._log_refusal("refused hello from %s (%s): not provisioned", name, peer.remote)
             raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
                              f"platform_instance/provisioning", code="not_provisioned")
         old = self.sessions.get(name)
         if old is not None and not old.ended:
             silent = self.reactor.seconds() - (old.peer.last_heard or 0)
             if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
-                log.warning("refused hello for %s from %s: its session from %s is alive (heard %.1f s ago)",
-                            name, peer.remote, old.address, silent)
+                self._log_refusal("refused hello for %s from %s: its session from %s is alive (heard %.1f s "
+                                  "ago)", name, peer.remote, old.address, silent)
                 raise ic.Refused(f"robot {name!r} has a live session from {old.address} (heard {silent:.1f} s "
                                  f"ago); a hello from {peer.host} cannot take it over", code="in_use")
             log.info("robot %s said hello again from %s: replacing its session from %s", name, peer.host,

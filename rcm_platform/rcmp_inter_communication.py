@@ -226,21 +226,30 @@ class Peer(Int32StringReceiver):
                         "body": {"code": "too_large", "reason": str(exc)}})
 
     # -- receiving --------------------------------------------------------------------------------------
+    def _warn(self, message, *args):
+        """A warning about this peer; for a peer not admitted yet, through the listener's rate limit (strangers
+        must not be able to roll the log over)."""
+        limited = getattr(getattr(self, "factory", None), "warn_limited", None)
+        if limited is not None and not self.admitted:
+            limited(message, *args)
+        else:
+            log.warning(message, *args)
+
     def dataReceived(self, data):
         if self.closed or self.aborted:
             return
         if not self.admitted:
             self.received += len(data)
             if self.received > MAX_BYTES_BEFORE_ADMISSION:
-                log.warning("closing the connection from %s: over %d bytes sent before being admitted",
-                            self.remote, MAX_BYTES_BEFORE_ADMISSION)
+                self._warn("closing the connection from %s: over %d bytes sent before being admitted",
+                           self.remote, MAX_BYTES_BEFORE_ADMISSION)
                 self.abort("too much sent before being admitted")
                 return
         super().dataReceived(data)
 
     def lengthLimitExceeded(self, length):
-        log.warning("protocol error from %s: frame of %d bytes is over the %d-byte limit%s; closing",
-                    self.remote, length, self.MAX_LENGTH, "" if self.admitted else " before admission")
+        self._warn("protocol error from %s: frame of %d bytes is over the %d-byte limit%s; closing",
+                   self.remote, length, self.MAX_LENGTH, "" if self.admitted else " before admission")
         self._unprocessed = b""
         self.abort(f"protocol error: frame of {length} bytes over the limit")
 
@@ -251,7 +260,7 @@ class Peer(Int32StringReceiver):
         try:
             message = decode_frame(data)
         except ProtocolError as exc:
-            log.warning("protocol error from %s: %s; closing", self.remote, exc)
+            self._warn("protocol error from %s: %s; closing", self.remote, exc)
             self.abort(f"protocol error: {exc}")
             return
         msg_id, kind, op, body = message["id"], message["kind"], message["op"], message["body"]
@@ -325,10 +334,13 @@ class ListeningFactory(PeerFactory):
 
     A connection over ``max_connections`` in all or ``max_per_address`` from its source address is refused
     (``buildProtocol`` returns None: Twisted closes it before reading anything). Refusals are logged at most
-    once every ``LOG_EVERY`` seconds, with how many there were.
+    once every ``LOG_EVERY`` seconds, with how many there were; warnings about connections not admitted yet
+    (protocol errors, limits), at most ``WARNINGS_PER_PERIOD`` every ``LOG_EVERY`` seconds, then one line
+    saying how many were left out.
     """
 
     LOG_EVERY = 10.0
+    WARNINGS_PER_PERIOD = 10
 
     def __init__(self, handler, reactor, max_connections=None, max_per_address=MAX_PER_ADDRESS):
         super().__init__(handler, reactor)
@@ -339,6 +351,9 @@ class ListeningFactory(PeerFactory):
         self.refused = 0             # connections refused since the last log line
         self.refused_total = 0
         self._logged_at = None
+        self._warn_period = None
+        self._warned = 0
+        self.warnings_left_out = 0
 
     def buildProtocol(self, addr):
         host = getattr(addr, "host", "?")
@@ -364,6 +379,19 @@ class ListeningFactory(PeerFactory):
                 self.per_address[peer.host] = left
             else:
                 self.per_address.pop(peer.host, None)
+
+    def warn_limited(self, message, *args):
+        now = self.reactor.seconds()
+        if self._warn_period is None or now - self._warn_period >= self.LOG_EVERY:
+            if self.warnings_left_out:
+                log.warning("%d more warnings about connections not admitted were left out of the log in the "
+                            "last %.0f s", self.warnings_left_out, self.LOG_EVERY)
+            self._warn_period, self._warned, self.warnings_left_out = now, 0, 0
+        if self._warned < self.WARNINGS_PER_PERIOD:
+            self._warned += 1
+            log.warning(message, *args)
+        else:
+            self.warnings_left_out += 1
 
     def _refuse(self, why, host):
         self.refused += 1

@@ -332,6 +332,21 @@ class FrameLimitTests(MasterCase):
         yield until(lambda: not self.master.listening.factory.peers)   # nothing kept of it
 
     @defer.inlineCallbacks
+    def test_strangers_cannot_roll_the_log_over(self):
+        factory = self.master.listening.factory
+        socks = []
+        for n in range(30):
+            sock = raw_connect(self.port, f"127.0.1.{n + 1}")
+            sock.sendall(struct.pack("!I", 1024 * 1024))
+            socks.append(sock)
+        for sock in socks:
+            yield closed_by_peer(sock)
+            sock.close()
+        warnings = [line for line in self.log.lines if "over the 4096-byte limit" in line]
+        self.assertEqual(len(warnings), factory.WARNINGS_PER_PERIOD)
+        self.assertEqual(factory.warnings_left_out, 30 - factory.WARNINGS_PER_PERIOD)
+
+    @defer.inlineCallbacks
     def test_many_small_frames_before_hello_are_bounded_too(self):
         peer = yield self.connect("127.0.0.2")
         beat = json.dumps({"v": 1, "id": 1, "kind": "req", "op": "heartbeat", "body": {"pad": "x" * 3000}})
