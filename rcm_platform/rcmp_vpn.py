@@ -639,7 +639,8 @@ class ManagedVpn(_service_base()):
             self.delay = RESTART_INITIAL
         self.restarts += 1
         self._up_logged = False
-        log.warning("managed VPN: OpenVPN ended (%s); starting it again in %g s", process.error, self.delay)
+        why = " ".join(str(process.error).split())   # one log line, whatever OpenVPN printed
+        log.warning("managed VPN: OpenVPN ended (%s); starting it again in %g s", why, self.delay)
         self._restart_call = self.reactor.callLater(self.delay, self._spawn)
         self.delay = min(RESTART_CAP, self.delay * 2)
 
