@@ -8,9 +8,16 @@ hold (``check_params``: a launcher's only ``arg:=value``; no item's the ROS spec
 
 Also owns ``ReadCache``: the answers of the read commands kept in memory until the robotics data changes (see
 ``RoboticsData.generation``), so that reads do not go to SQLite (and to a thread) while nothing changed.
+
+And what a validated service item becomes when it runs: ``ServiceItem`` (built only from
+``validate_service_item``'s result, so the runtime never sees an unchecked item) with the command lines and the
+environment of its child (``node_argv``, ``launcher_argv``, ``child_env``), the node list of a launcher through
+roslaunch's own loader (``launcher_nodes``), and the graph name a node registers under (``graph_name``).
+``split_params`` is the only place where params are split into words.
 """
 
 import functools
+import os
 import re
 import shlex
 
@@ -201,6 +208,15 @@ def validate_service_item(list_field, item, index=0):
     return result
 
 
+def _item_list_field(entry):
+    """``sn_list`` for a service node entry, ``sl_list`` for a launcher entry (BadRequest for neither)."""
+    if isinstance(entry, dict) and "sn_name" in entry:
+        return "sn_list"
+    if isinstance(entry, dict) and "sl_name" in entry:
+        return "sl_list"
+    raise BadRequest(f"a service item must be an object with 'sn_name' or 'sl_name', not {_show(entry)}")
+
+
 def _json_type(value):
     if value is None:
         return "null"
@@ -284,3 +300,167 @@ class ReadCache:
             self._entries.clear()
         self._entries[key] = (generation, value)
         return value
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Service items as they run: argv, environment, launcher node lists.
+
+ROS_PATH_PREFIX = ["/usr/bin", "/bin", "/usr/sbin", "/sbin"]
+# An item's own state while it has no process (or failed without one): the words of rcmp_ms's process states.
+ITEM_STARTING = "starting"
+ITEM_FAILED = "failed"
+
+
+def child_env(base_env, ros_master_uri, address, ros_log_dir):
+    """The environment of a ROS child: the agent's, /usr/bin first on PATH, the space's master and address."""
+    env = dict(os.environ if base_env is None else base_env)
+    rest = [p for p in env.get("PATH", "").split(":") if p and p not in ROS_PATH_PREFIX]
+    env["PATH"] = ":".join(ROS_PATH_PREFIX + rest)
+    env["ROS_MASTER_URI"] = ros_master_uri
+    env["ROS_IP"] = address
+    env["ROS_HOSTNAME"] = address
+    env["ROS_LOG_DIR"] = ros_log_dir
+    env["PYTHONUNBUFFERED"] = "1"
+    env.pop("ROS_NAMESPACE", None)
+    return env
+
+
+def node_argv(package, node_type, name, params=""):
+    """``rosrun PKG TYPE PARAMS __name:=NAME`` as an argv list (params split as a shell would, no shell)."""
+    return ["rosrun", package, node_type, *split_params(params or ""), "__name:=" + name]
+
+
+def launcher_argv(package, launch_file, params="", sigint_timeout=2.0, sigterm_timeout=1.0):
+    """``roslaunch --wait PKG FILE PARAMS`` with roslaunch's own stop timeouts inside ours.
+
+    ``--wait``: the space's master is already up when items start; should it be gone, a launcher must wait
+    (and show as not paired) rather than start a ROS master of its own on the space's port.
+    """
+    return ["roslaunch", "--wait", f"--sigint-timeout={sigint_timeout:g}",
+            f"--sigterm-timeout={sigterm_timeout:g}", package, launch_file, *split_params(params or "")]
+
+
+def launcher_nodes(package, launch_file, params=""):
+    """[(node name without leading slash, package, type)] that ``roslaunch PKG FILE PARAMS`` would start.
+
+    Uses roslaunch's own loader (no output parsing); blocking: call it in a thread. Raises
+    ``roslaunch.core.RLException`` (its message names the problem) for a missing package, file or arg.
+    """
+    import roslaunch.config
+    import roslaunch.rlutil
+    args = split_params(params or "")
+    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)  # drops name:=value
+    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
+                                                  assign_machines=False)
+    nodes = []
+    for node in config.nodes:
+        full = (node.namespace or "/") + node.name
+        nodes.append((full.lstrip("/"), node.package, node.type))
+    return nodes
+
+
+def graph_name(name, params=""):
+    """The ROS graph name ``rosrun PKG TYPE PARAMS __name:=NAME`` registers under: ``/NAME``, or
+    ``/NS/NAME`` when the params hold ``__ns:=NS`` (params that do not split: the plain name)."""
+    try:
+        words = split_params(params or "")
+    except BadRequest:
+        words = []
+    namespace = next((w.split(":=", 1)[1] for w in reversed(words) if w.startswith("__ns:=")), "")
+    namespace = namespace.strip("/")
+    return f"/{namespace}/{name}" if namespace else f"/{name}"
+
+
+class ServiceItem:
+    """One node or launcher of a service space, run here (``process``) or on the robot (``remote``).
+
+    Built only from a validated entry (``from_entry``); ``special`` is the runtime's hooks for the nodes it
+    treats specially (FIROS, rcm_driver: ``rcmp_ms.SPECIAL_ITEMS``), None for the others.
+    """
+
+    def __init__(self, kind, name, package, type_or_file, params, side, i_name):
+        self.kind = kind
+        self.name = name
+        self.package = package
+        self.type_or_file = type_or_file
+        self.params = params or ""
+        self.side = side
+        self.i_name = i_name
+        self.special = None
+        self.process = None     # ManagedProcess, when run by this agent
+        self.remote = None      # the robot's item report, when run there
+        self.own_state = ITEM_STARTING
+        self.error = None       # set when the item failed before or without a process
+        self.nodes = []         # ROS node names (the node itself, or the launcher's nodes)
+        self.node_types = {}    # launcher node name -> (package, type)
+        self.driver_port = None
+        self.inbound_port = None
+
+    @classmethod
+    def from_entry(cls, entry, i_name, index=0, list_field=None):
+        """A ServiceItem from a service logic entry (``sn_*`` node or ``sl_*`` launcher fields; ``list_field``
+        says which, else the name field does), validated by ``validate_service_item``; BadRequest says why."""
+        list_field = list_field or _item_list_field(entry)
+        checked = validate_service_item(list_field, entry, index)
+        if list_field == "sn_list":
+            return cls("node", checked["sn_name"], checked["sn_package"], checked["sn_type"],
+                       checked["sn_params"], checked["sn_side"], i_name)
+        return cls("launcher", checked["sl_name"], checked["sl_package"], checked["sl_file_launcher"],
+                   checked["sl_params"], checked["sl_side"], i_name)
+
+    def to_dict(self):
+        """The service logic entry this item came from (what a robot is sent)."""
+        if self.kind == "node":
+            return {"sn_package": self.package, "sn_type": self.type_or_file, "sn_name": self.name,
+                    "sn_params": self.params, "sn_side": self.side}
+        return {"sl_package": self.package, "sl_file_launcher": self.type_or_file, "sl_name": self.name,
+                "sl_params": self.params, "sl_side": self.side}
+
+    def argv(self, params=None, extra=()):
+        """The item's argv (never a shell): ``params`` replaces the item's own, ``extra`` words go last."""
+        params = self.params if params is None else params
+        if self.kind == "launcher":
+            return launcher_argv(self.package, self.type_or_file, params) + list(extra)
+        return node_argv(self.package, self.type_or_file, self.name, params) + list(extra)
+
+    @property
+    def state(self):
+        if self.remote is not None:
+            return self.remote.get("state", ITEM_FAILED)
+        if self.process is not None and self.error is None:
+            return self.process.state
+        return self.own_state
+
+    @property
+    def current_error(self):
+        if self.remote is not None:
+            return self.remote.get("error")
+        if self.error is not None:
+            return self.error
+        return self.process.error if self.process is not None else None
+
+    def fail(self, error):
+        self.error = error
+        self.own_state = ITEM_FAILED
+
+    def report(self):
+        """The item report of docs/DESIGN.md (what a robot returns to the master)."""
+        if self.remote is not None:
+            return dict(self.remote)
+        return {"kind": self.kind, "name": self.name, "package": self.package,
+                "type_or_file": self.type_or_file, "side": self.side, "i_name": self.i_name,
+                "state": self.state, "error": self.current_error, "nodes": list(self.nodes),
+                "node_types": {n: list(t) for n, t in self.node_types.items()}}
+
+
+def items_of_logic(service_logic, i_name=None):
+    """The ServiceItems of a service logic dict (``sn_list`` nodes, then ``sl_list`` launchers); BadRequest
+    names the first bad entry."""
+    items = []
+    for list_field in ("sn_list", "sl_list"):
+        entries = service_logic.get(list_field) or []
+        if not isinstance(entries, list):
+            raise BadRequest(f"'{list_field}' must be a list, not {_json_type(entries)}")
+        for index, entry in enumerate(entries):
+            items.append(ServiceItem.from_entry(entry, i_name, index, list_field))
+    return items

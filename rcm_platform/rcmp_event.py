@@ -2,9 +2,9 @@
 
 Owns: the table of ops (who serves each, required fields and their types) and their validation; the master's
 side (hello → accepted / refused against the robotics data, one session per connected robot, heartbeats, the
-service space created on connection through ``rcmp_ms.ServiceSpaceManager`` and torn down when the robot goes,
+service space created on connection through the ``ServiceSpaceManager`` and torn down when the robot goes,
 ``disconnect`` for the RDAPI's r_provisioning) and the robot's side (wait for the platform address, hello with
-backoff, serve ``start_items``/``stop_items`` with ``rcmp_ms.RobotSideRunner``, report item exits, stop its
+backoff, serve ``start_items``/``stop_items`` with the ``RobotSideRunner``, report item exits, stop its
 robot-side items and say hello again when the master is lost). The wire format is ``rcmp_inter_communication``'s;
 ``docs/PROTOCOL.md`` documents every op.
 
@@ -22,6 +22,7 @@ from twisted.internet import defer, threads
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
+from rcm_platform.rcmp_service_command import describe, describe_waiting
 
 log = logging.getLogger("rcmp.event")
 
@@ -114,20 +115,18 @@ class _OrderedWrites:
         return done
 
 
-def _platform_address(config):
-    """The agent's platform address, or None while it does not exist yet."""
-    from rcm_platform import rcmp_node  # rcmp_node assembles the agents, so import it late
-    try:
-        return rcmp_node.platform_address(config)
-    except Exception as exc:  # the interface is not there or has no address yet
-        log.debug("platform address not available: %s", exc)
-        return None
-
-
-def _default_master_address(own_address):
+def master_address_from(own_address):
     """The master's address when ``ip_master`` is not set: the agent's own with the last octet 1."""
-    from rcm_platform import rcmp_node
-    return rcmp_node.master_address_from(own_address)
+    parts = own_address.split(".")
+    return ".".join(parts[:3] + ["1"])
+
+
+def _address_function(config, address):
+    """``address`` (a function giving the agent's platform address now, or None while there is none), or
+    one giving ``config.vpn_address``."""
+    if address is not None:
+        return address
+    return lambda: getattr(config, "vpn_address", None)
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -171,11 +170,14 @@ class RobotSession:
 class MasterAgent(service.Service):
     """The master's agent-to-agent server: hello, sessions, heartbeats, service spaces.
 
-    ``spaces`` is the ``rcmp_ms.ServiceSpaceManager``; ``describe()`` answers service_space/read (a space
-    still waiting to be built is described as such); ``remove(pi_name, reason, remove)`` ends a robot's session
-    and removes its provisioning under the robot's lock (the RDAPI's r_provisioning); ``disconnect(pi_name,
-    reason)`` only ends the session. ``expected_address(name) -> str | None`` (optional) is the address a hello
-    naming ``name`` must come from (the managed VPN's), or None when there is no such rule for ``name``.
+    ``spaces`` is the ``rcmp_ms.ServiceSpaceManager`` (``create``, ``teardown``, ``item_exited``; it reports
+    pairing changes through ``on_state``, which the agent sets); ``describe()`` answers service_space/read (a
+    space still waiting to be built is described as such; ``rcmp_service_command`` renders both);
+    ``remove(pi_name, reason, remove)`` ends a robot's session and removes its provisioning under the robot's
+    lock (the RDAPI's r_provisioning); ``disconnect(pi_name, reason)`` only ends the session.
+    ``expected_address(name) -> str | None`` (optional) is the address a hello naming ``name`` must come from
+    (the managed VPN's), or None when there is no such rule for ``name``. ``address()`` gives the platform
+    address to listen on (None while the VPN has none). ``rcmp_node`` builds them and passes them in.
 
     Admission of a hello (docs/PROTOCOL.md, docs/SECURITY.md): the name is checked against the name rule, then
     against ``expected_address`` (``wrong_address``); then, under the robot's lock, its provisioning
@@ -186,19 +188,16 @@ class MasterAgent(service.Service):
 
     name = "ic-master"
 
-    def __init__(self, config, data, table, reactor, public_ip, spaces=None, expected_address=None):
+    def __init__(self, config, data, table, reactor, public_ip, spaces, address=None, expected_address=None):
         self.config = config
         self.expected_address = expected_address   # name -> the only address a hello for it may come from, or None
         self.data = data
         self.table = table
         self.reactor = reactor
         self.public_ip = public_ip
-        if spaces is None:
-            from rcm_platform import rcmp_ms
-            spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, on_state=self._on_state)
-        else:  # tests give their own manager; it reports pairing changes through on_state
-            spaces.on_state = self._on_state
+        spaces.on_state = self._on_state
         self.spaces = spaces
+        self._platform_address = _address_function(config, address)
         self.sessions = {}           # robot name -> RobotSession
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
         self._write = _OrderedWrites()
@@ -215,7 +214,7 @@ class MasterAgent(service.Service):
     def startService(self):
         """Listen on the platform address; raises CannotListenError at once when the port is taken."""
         super().startService()
-        self.address = self.address or _platform_address(self.config)
+        self.address = self.address or self._platform_address()
         if self.address is not None:
             self._listen()
         else:  # the VPN is not up yet: listen as soon as its address exists
@@ -227,7 +226,7 @@ class MasterAgent(service.Service):
         self._address_call = None
         if not self.running:
             return
-        self.address = _platform_address(self.config)
+        self.address = self._platform_address()
         if self.address is None:
             self._address_call = self.reactor.callLater(ADDRESS_POLL, self._wait_for_address)
             return
@@ -284,14 +283,11 @@ class MasterAgent(service.Service):
         return sorted(self.sessions)
 
     def describe(self, ss_name):
-        """The service_space/read payload: the space manager's, or, for a space waiting to be built, why."""
+        """The service_space/read payload: the space manager's space, or, for a space waiting to be built, why."""
         if ss_name in self._waiting:
-            place = list(self._waiting).index(ss_name) + 1
-            return {"r_nodes": [], "r_launchers": [], "public_ip": self.public_ip, "inbound_port": None,
-                    "ros_master_uri": None, "paired": False, "waiting": True,
-                    "reason": f"waiting to be built: number {place} in line; the master builds at most "
-                              f"{self.max_starting_spaces} service spaces at once"}
-        return self.spaces.describe(ss_name)
+            return describe_waiting(list(self._waiting).index(ss_name) + 1, self.max_starting_spaces,
+                                    self.public_ip)
+        return describe(self.spaces, ss_name)
 
     # -- protocol handler -------------------------------------------------------------------------------
     def request_received(self, peer, op, body):
@@ -523,20 +519,21 @@ class MasterAgent(service.Service):
 # robot side
 
 class RobotAgent(service.Service):
-    """A robot's (or server VM's) agent: hello to the master, robot-side items on its request, heartbeats."""
+    """A robot's (or server VM's) agent: hello to the master, robot-side items on its request, heartbeats.
+
+    ``runner`` is the ``rcmp_ms.RobotSideRunner`` (the agent sets its ``on_item_exited``); ``address()`` gives
+    the platform address (None while the VPN has none). ``rcmp_node`` builds them and passes them in.
+    """
 
     name = "ic-robot"
 
-    def __init__(self, config, table, reactor, runner=None):
+    def __init__(self, config, table, reactor, runner, address=None):
         self.config = config
         self.table = table
         self.reactor = reactor
-        if runner is None:
-            from rcm_platform import rcmp_ms
-            runner = rcmp_ms.RobotSideRunner(reactor, table, config, on_item_exited=self._item_exited)
-        else:  # tests give their own runner
-            runner.on_item_exited = self._item_exited
+        runner.on_item_exited = self._item_exited
         self.runner = runner
+        self._platform_address = _address_function(config, address)
         self.backoff = ic.Backoff(initial=0.25, factor=2.0, cap=RETRY_CAP, jitter=RETRY_JITTER)
         self.peer = None
         self.accepted = False
@@ -587,13 +584,13 @@ class RobotAgent(service.Service):
         self._call = None
         if not self.running:
             return
-        self.address = _platform_address(self.config)
+        self.address = self._platform_address()
         if self.address is None:
             self._problem("waiting for the platform address (interface %s has no IPv4 address yet)",
                           self.config.vpn_interface)
             self._schedule(ADDRESS_POLL)
             return
-        ip_master = self.config.ip_master or _default_master_address(self.address)
+        ip_master = self.config.ip_master or master_address_from(self.address)
         master = f"{ip_master}:{self.config.ic_port}"
         try:
             peer = yield ic.connect(self.reactor, ip_master, self.config.ic_port, self,

@@ -25,6 +25,9 @@ Rules (``docs/PROTOCOL.md`` is the reference):
 This module knows nothing of robots: what the ops mean is ``rcmp_event``'s business. A connection's owner gives
 it a *handler* with ``request_received(peer, op, body) -> value | Deferred`` (raise ``Refused`` for an ``err``
 answer) and, optionally, ``peer_connected(peer)`` and ``peer_lost(peer, reason)``.
+
+Also the agent's other wire: ``DriverLink``, its end of the connection to a service space's ``rcm_driver``
+(CONTRACTS §4: one JSON object per line, ``{"rcm_d_cmd", "r_name"}`` both ways), and ``connect_driver``.
 """
 
 import json
@@ -35,7 +38,7 @@ import resource
 
 from twisted.application.internet import backoffPolicy
 from twisted.internet import defer, endpoints, protocol
-from twisted.protocols.basic import Int32StringReceiver
+from twisted.protocols.basic import Int32StringReceiver, LineReceiver
 from twisted.python import failure
 
 log = logging.getLogger("rcmp.ic")
@@ -441,3 +444,41 @@ class Backoff:
 
     def reset(self):
         self.attempts = 0
+
+
+class DriverLink(LineReceiver):
+    """The agent's end of the rcm_driver connection (CONTRACTS §4): one JSON object per line.
+
+    ``on_message(cmd, r_name)`` is called for each well-formed line the driver sends (garbage is logged and
+    skipped); ``on_lost(link)`` when the connection ends. ``send(cmd, r_name)`` writes one line.
+    """
+
+    delimiter = b"\n"
+    MAX_LENGTH = 65536
+
+    def __init__(self, name, on_message, on_lost=None):
+        self.name = name            # whose link this is, for the log (the service space)
+        self.on_message = on_message
+        self.on_lost = on_lost
+
+    def send(self, cmd, r_name):
+        self.sendLine(json.dumps({"rcm_d_cmd": cmd, "r_name": r_name}).encode())
+
+    def lineReceived(self, line):
+        try:
+            message = json.loads(line.decode("utf-8"))
+            cmd, r_name = message["rcm_d_cmd"], message["r_name"]
+        except (ValueError, KeyError, TypeError):
+            log.warning("service space %s: rcm_driver sent garbage: %r", self.name, line[:200])
+            return
+        self.on_message(cmd, r_name)
+
+    def connectionLost(self, reason=protocol.connectionDone):
+        if self.on_lost is not None:
+            self.on_lost(self)
+
+
+def connect_driver(reactor, port, link, timeout=1.0):
+    """One attempt to connect ``link`` (a DriverLink) to rcm_driver on ``127.0.0.1:port``; fires with it."""
+    endpoint = endpoints.TCP4ClientEndpoint(reactor, "127.0.0.1", port, timeout=timeout)
+    return endpoints.connectProtocol(endpoint, link)

@@ -25,22 +25,33 @@ This module owns every child process an agent starts and the service spaces buil
 
 On top of the table, the service-space runtime (see docs/SERVICE_SPACES.md):
 
+* ``ServiceSpace``: one robot's running context on this agent. It has one state from a closed set
+  (``creating``, ``paired``, ``unpaired``, ``stopping``, ``gone``) and changes state only through
+  ``ServiceSpace.transition``, which checks the allowed source states, as ``ManagedProcess`` does.
 * ``ServiceSpaceManager`` (master or server side): per connected robot a ``ServiceSpace``: a ROS master
   (``rosmaster --core`` plus ``rosout``, measured leaner and faster than ``roscore``) on a free port from
   ``config.ros_port_base`` upward, the S-side items, and the R-side items through a ``RemoteRobot``, all
   spawned at once (rospy nodes and ``roslaunch --wait`` wait for their master); ``paired`` when the ROS
   master answers and every item has started: its node(s) registered with the space's master (a launcher:
   every node it launches), or, for a node that never registers under its name, it stayed up for the settle
-  time. rosout is watched but not waited for (it only collects logs). FIROS items get one of the inbound open
-  ports (``-P``); rcm_driver items get a free local ``port=N`` and are told ``r_connection`` /
-  ``r_disconnection`` over a TCP connection kept open. ``describe`` renders ``service_space/read``.
+  time. rosout is watched but not waited for (it only collects logs).
+* ``SPECIAL_ITEMS``: the one table of the nodes treated specially, with their hooks (``SpecialItem``):
+  FIROS gets one of the inbound open ports (``-P``); rcm_driver gets a free local ``port=N`` and is told
+  ``r_connection`` / ``r_disconnection`` over a ``rcmp_inter_communication.DriverLink`` kept open.
 * ``RobotSideRunner`` (robot side): starts and stops the R-side items (and the ROS master when the service
   logic's ``ss_side`` is ``R``) for the master, and reports items that die later.
 * ``RemoteRobot``: the protocol the master's agent layer implements over the network, one per robot.
+* ``TableService``: stops whatever is left in the table when the agent stops (the last safety net).
+* ``poll_until``: every "try again until a deadline" of the runtime (a ROS master answering, nodes
+  registering, rcm_driver accepting) is this one helper.
+
+What a service item is and how its command line and environment are built is ``rcmp_command``'s
+(``ServiceItem``, ``node_argv``, ``launcher_argv``, ``child_env``); ``rcmp_service_command.describe`` renders a
+space for ``service_space/read``. This module imports neither ``rcmp_event`` nor ``rcmp_node``: ``rcmp_node``
+builds the runtime and hands it (and the function giving the platform address) to the agents.
 """
 
 import collections
-import json
 import logging
 import os
 import re
@@ -51,10 +62,13 @@ import time
 import uuid
 from typing import Protocol
 
-from twisted.internet import defer, error as ierror, protocol, task, threads
-from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
-from twisted.protocols.basic import LineReceiver
+from twisted.application import service
+from twisted.internet import defer, protocol, task, threads
 from twisted.web import xmlrpc
+
+from rcm_platform import rcmp_inter_communication as ic
+from rcm_platform.rcmp_command import (CommandError, ServiceItem, child_env, graph_name, items_of_logic,
+                                       launcher_nodes, split_params)
 
 xmlrpc.QueryFactory.noisy = False  # one "Starting factory" log line per XML-RPC call to a ROS master is noise
 
@@ -82,7 +96,6 @@ _ALLOWED_SOURCES = {
 
 SETSID = "/usr/bin/setsid"
 SETPRIV = "/usr/bin/setpriv"
-ROS_PATH_PREFIX = ["/usr/bin", "/bin", "/usr/sbin", "/sbin"]
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?")  # colours, terminal titles
 
 
@@ -553,55 +566,56 @@ class ProcessTable:
             yield defer.gatherResults([m.stop() for m in batch], consumeErrors=True)
 
 
+class TableService(service.MultiService):
+    """The agent's services (``rcmp_node`` puts them in it) and, once they have stopped, whatever is still in
+    the table stopped too: the last safety net behind the agents' own teardown."""
+
+    def __init__(self, table):
+        super().__init__()
+        self.table = table
+
+    @defer.inlineCallbacks
+    def stopService(self):
+        try:
+            yield super().stopService()
+        finally:
+            left = [m for m in self.table.processes() if m.state in LIVE_STATES]
+            if left:
+                log.warning("stopping %d process(es) still running: %s", len(left),
+                            ", ".join(m.key for m in left))
+            yield self.table.stop_all()
+
+
 # ---------------------------------------------------------------------------------------------------------
-# Service items: argv, environment, launcher node lists.
+# Helpers of the service-space runtime.
 
-def child_env(base_env, ros_master_uri, address, ros_log_dir):
-    """The environment of a ROS child: the agent's, /usr/bin first on PATH, the space's master and address."""
-    env = dict(os.environ if base_env is None else base_env)
-    rest = [p for p in env.get("PATH", "").split(":") if p and p not in ROS_PATH_PREFIX]
-    env["PATH"] = ":".join(ROS_PATH_PREFIX + rest)
-    env["ROS_MASTER_URI"] = ros_master_uri
-    env["ROS_IP"] = address
-    env["ROS_HOSTNAME"] = address
-    env["ROS_LOG_DIR"] = ros_log_dir
-    env["PYTHONUNBUFFERED"] = "1"
-    env.pop("ROS_NAMESPACE", None)
-    return env
+AGAIN = object()  # what an attempt given to poll_until returns to be called again
 
 
-def node_argv(package, node_type, name, params=""):
-    """``rosrun PKG TYPE PARAMS __name:=NAME`` as an argv list (params split as a shell would, no shell)."""
-    return ["rosrun", package, node_type, *shlex.split(params or ""), "__name:=" + name]
+class SpaceError(Exception):
+    """Why a service space cannot be paired (a sentence shown in service_space/read as ``reason``)."""
 
 
-def launcher_argv(package, launch_file, params="", sigint_timeout=2.0, sigterm_timeout=1.0):
-    """``roslaunch --wait PKG FILE PARAMS`` with roslaunch's own stop timeouts inside ours.
-
-    ``--wait``: the space's master is already up when items start; should it be gone, a launcher must wait
-    (and show as not paired) rather than start a ROS master of its own on the space's port.
-    """
-    return ["roslaunch", "--wait", f"--sigint-timeout={sigint_timeout:g}",
-            f"--sigterm-timeout={sigterm_timeout:g}", package, launch_file, *shlex.split(params or "")]
-
-
-def launcher_nodes(package, launch_file, params=""):
-    """[(node name without leading slash, package, type)] that ``roslaunch PKG FILE PARAMS`` would start.
-
-    Uses roslaunch's own loader (no output parsing); blocking: call it in a thread. Raises
-    ``roslaunch.core.RLException`` (its message names the problem) for a missing package, file or arg.
-    """
-    import roslaunch.config
-    import roslaunch.rlutil
-    args = shlex.split(params or "")
-    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)  # drops name:=value
-    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
-                                                  assign_machines=False)
-    nodes = []
-    for node in config.nodes:
-        full = (node.namespace or "/") + node.name
-        nodes.append((full.lstrip("/"), node.package, node.type))
-    return nodes
+@defer.inlineCallbacks
+def poll_until(reactor, attempt, interval, timeout=None, on_timeout=None):
+    """Call ``attempt()`` (a value or a Deferred) every ``interval`` seconds until it gives something other
+    than ``AGAIN``, and fire with that. An exception other than SpaceError counts as AGAIN (a saturated
+    machine makes single calls fail); SpaceError ends the poll. Once ``timeout`` seconds have passed the poll
+    fires with ``on_timeout(last exception or None)`` (which may raise) instead of trying again."""
+    deadline = None if timeout is None else reactor.seconds() + timeout
+    while True:
+        last = None
+        try:
+            result = yield defer.maybeDeferred(attempt)
+        except SpaceError:
+            raise
+        except Exception as exc:
+            result, last = AGAIN, exc
+        if result is not AGAIN:
+            return result
+        if deadline is not None and reactor.seconds() > deadline:
+            return on_timeout(last)
+        yield task.deferLater(reactor, interval, lambda: None)
 
 
 def _tcp_port_free(port, host=""):
@@ -615,159 +629,106 @@ def _tcp_port_free(port, host=""):
             return False
 
 
-def _platform_address(config):
-    """This machine's platform address now: ``rcmp_node.platform_address(config)`` (vpn_address or the VPN
-    interface's IPv4 address); SpaceError when there is none yet."""
-    address = getattr(config, "vpn_address", None)
-    if not address:
-        try:
-            from rcm_platform import rcmp_node
-            address = rcmp_node.platform_address(config)
-        except (ImportError, AttributeError, OSError, ValueError) as exc:
-            raise SpaceError(f"no platform address: {exc}") from None
-    if not address:
-        raise SpaceError(f"no platform address: interface {getattr(config, 'vpn_interface', '?')} has no "
-                         "IPv4 address and vpn_address is not set")
-    return address
-
-
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
 
 
-def _graph_name(name, params=""):
-    """The ROS graph name ``rosrun PKG TYPE PARAMS __name:=NAME`` registers under: ``/NAME``, or
-    ``/NS/NAME`` when the params hold ``__ns:=NS`` (unbalanced quotes: the plain name; spawning reports them)."""
-    try:
-        words = shlex.split(params or "")
-    except ValueError:
-        words = []
-    namespace = next((w.split(":=", 1)[1] for w in reversed(words) if w.startswith("__ns:=")), "")
-    namespace = namespace.strip("/")
-    return f"/{namespace}/{name}" if namespace else f"/{name}"
+# ---------------------------------------------------------------------------------------------------------
+# Special items: the nodes the runtime treats specially, recognised in one place, with hooks.
+
+class SpecialItem:
+    """Hooks the runtime calls for one kind of special node; the defaults do nothing."""
+
+    name = None
+    announces_entities = False   # it publishes the robot as an entity (rcm_driver waits for e_removed)
+
+    def prepare(self, host, space, item):
+        """Before spawning: take what the item needs (ports); raise SpaceError when it cannot."""
+
+    def params(self, item):
+        """The params the item runs with."""
+        return item.params
+
+    def extra_argv(self, item):
+        """Words after the item's argv."""
+        return []
+
+    def started(self, host, space, item):
+        """After the space's items started (the item runs): a Deferred or None."""
+
+    def stopping(self, host, space, item):
+        """When the space is torn down, before any item stops: a Deferred or None."""
 
 
-class SpaceError(Exception):
-    """Why a service space cannot be paired (a sentence shown in service_space/read as ``reason``)."""
+class FirosItem(SpecialItem):
+    """FIROS: one of the inbound open ports (``-P``); the space's ``inbound_port`` is that port."""
+
+    name = "firos"
+    announces_entities = True
+
+    def prepare(self, host, space, item):
+        item.inbound_port = host._take_inbound_port(space)
+        space.inbound_port = item.inbound_port
+
+    def extra_argv(self, item):
+        return ["-P", str(item.inbound_port)]
 
 
-class ServiceItem:
-    """One node or launcher of a service space, run here (``process``) or on the robot (``remote``)."""
+class RcmDriverItem(SpecialItem):
+    """rcm_driver: a free local ``port=N``, told ``r_connection`` once it runs and ``r_disconnection`` before
+    the space stops, over a TCP connection kept open (``rcmp_inter_communication.DriverLink``)."""
 
-    def __init__(self, kind, name, package, type_or_file, params, side, i_name):
-        self.kind = kind
-        self.name = name
-        self.package = package
-        self.type_or_file = type_or_file
-        self.params = params or ""
-        self.side = side
-        self.i_name = i_name
-        self.process = None     # ManagedProcess, when run by this agent
-        self.remote = None      # the robot's item report, when run there
-        self.own_state = STARTING
-        self.error = None       # set when the item failed before or without a process
-        self.nodes = []         # ROS node names (the node itself, or the launcher's nodes)
-        self.node_types = {}    # launcher node name -> (package, type)
-        self.driver_port = None
-        self.inbound_port = None
+    name = "rcm_driver"
 
-    @classmethod
-    def from_dict(cls, item, i_name):
-        """A ServiceItem from a service logic entry (``sn_*`` node or ``sl_*`` launcher fields)."""
-        if not isinstance(item, dict):
-            raise ValueError(f"a service item must be an object, got {item!r}")
-        try:
-            if "sn_name" in item:
-                return cls("node", item["sn_name"], item["sn_package"], item["sn_type"],
-                           item.get("sn_params", ""), str(item.get("sn_side", "S")).upper(), i_name)
-            if "sl_name" in item:
-                return cls("launcher", item["sl_name"], item["sl_package"], item["sl_file_launcher"],
-                           item.get("sl_params", ""), str(item.get("sl_side", "S")).upper(), i_name)
-        except KeyError as exc:
-            raise ValueError(f"service item {item!r} lacks the field {exc.args[0]}") from None
-        raise ValueError(f"service item {item!r} has neither sn_name nor sl_name")
+    def prepare(self, host, space, item):
+        item.driver_port = host._choose_driver_port()
 
-    def to_dict(self):
-        """The service logic entry this item came from (what a robot is sent)."""
-        if self.kind == "node":
-            return {"sn_package": self.package, "sn_type": self.type_or_file, "sn_name": self.name,
-                    "sn_params": self.params, "sn_side": self.side}
-        return {"sl_package": self.package, "sl_file_launcher": self.type_or_file, "sl_name": self.name,
-                "sl_params": self.params, "sl_side": self.side}
+    def params(self, item):
+        kept = [p for p in split_params(item.params) if not p.startswith("port=")]
+        return shlex.join(kept + [f"port={item.driver_port}"])
 
-    @property
-    def is_rcm_driver(self):
-        return self.kind == "node" and self.package == "rcm" and self.type_or_file == "rcm_driver.py"
+    def started(self, host, space, item):
+        if item.process is not None and item.state == RUNNING:
+            return host._connect_driver(space, item)
+        return None
 
-    @property
-    def is_firos(self):
-        return self.kind == "node" and self.package == "firos" and self.type_or_file == "core.py"
-
-    @property
-    def state(self):
-        if self.remote is not None:
-            return self.remote.get("state", FAILED)
-        if self.process is not None and self.error is None:
-            return self.process.state
-        return self.own_state
-
-    @property
-    def current_error(self):
-        if self.remote is not None:
-            return self.remote.get("error")
-        if self.error is not None:
-            return self.error
-        return self.process.error if self.process is not None else None
-
-    def fail(self, error):
-        self.error = error
-        self.own_state = FAILED
-
-    def report(self):
-        """The item report of docs/DESIGN.md (what a robot returns to the master)."""
-        if self.remote is not None:
-            return dict(self.remote)
-        return {"kind": self.kind, "name": self.name, "package": self.package,
-                "type_or_file": self.type_or_file, "side": self.side, "i_name": self.i_name,
-                "state": self.state, "error": self.current_error, "nodes": list(self.nodes),
-                "node_types": {n: list(t) for n, t in self.node_types.items()}}
+    def stopping(self, host, space, item):
+        return host._say_goodbye_to_driver(space)
 
 
-class _DriverLink(LineReceiver):
-    """The agent's end of the rcm_driver connection (CONTRACTS §4): one JSON object per line."""
+# (package, node type) -> hooks; only nodes (kind "node") are special
+SPECIAL_ITEMS = {
+    ("firos", "core.py"): FirosItem(),
+    ("rcm", "rcm_driver.py"): RcmDriverItem(),
+}
 
-    delimiter = b"\n"
-    MAX_LENGTH = 65536
 
-    def __init__(self, space):
-        self.space = space
+def _mark_special(item):
+    if item.kind == "node":
+        item.special = SPECIAL_ITEMS.get((item.package, item.type_or_file))
+    return item
 
-    def send(self, cmd, r_name):
-        self.sendLine(json.dumps({"rcm_d_cmd": cmd, "r_name": r_name}).encode())
 
-    def lineReceived(self, line):
-        try:
-            message = json.loads(line.decode("utf-8"))
-            cmd, r_name = message["rcm_d_cmd"], message["r_name"]
-        except (ValueError, KeyError, TypeError):
-            log.warning("service space %s: rcm_driver sent garbage: %r", self.space.name, line[:200])
-            return
-        log.info("service space %s: rcm_driver says %s %s", self.space.name, cmd, r_name)
-        self.space.driver_events.append({"rcm_d_cmd": cmd, "r_name": r_name})
-        waiters, self.space.driver_waiters = self.space.driver_waiters, []
-        for wanted, d in waiters:
-            if wanted == (cmd, r_name):
-                d.callback(True)
-            else:
-                self.space.driver_waiters.append((wanted, d))
+# ---------------------------------------------------------------------------------------------------------
+# Service spaces: states, a closed set, and the only transitions allowed between them (target -> sources).
 
-    def connectionLost(self, reason=protocol.connectionDone):
-        if self.space.driver_link is self:
-            self.space.driver_link = None
+SPACE_CREATING = "creating"    # being built
+SPACE_PAIRED = "paired"        # built; the ROS master and every item run (robot side: its items run)
+SPACE_UNPAIRED = "unpaired"    # built, not paired: ``why_unpaired()`` says why
+SPACE_STOPPING = "stopping"    # torn down (creation, if still going, gives up)
+SPACE_GONE = "gone"            # nothing of it is left
+
+SPACE_STATES = frozenset({SPACE_CREATING, SPACE_PAIRED, SPACE_UNPAIRED, SPACE_STOPPING, SPACE_GONE})
+_SPACE_SOURCES = {
+    SPACE_PAIRED: frozenset({SPACE_CREATING, SPACE_UNPAIRED}),
+    SPACE_UNPAIRED: frozenset({SPACE_CREATING, SPACE_PAIRED}),
+    SPACE_STOPPING: frozenset({SPACE_CREATING, SPACE_PAIRED, SPACE_UNPAIRED}),
+    SPACE_GONE: frozenset({SPACE_STOPPING}),
+}
 
 
 class ServiceSpace:
-    """The running context of one robot on this agent: ROS master, items, ports, pairing."""
+    """The running context of one robot on this agent: ROS master, items, ports, and one state."""
 
     def __init__(self, name, ss_side, key_prefix, address, i_name):
         self.name = name
@@ -775,6 +736,7 @@ class ServiceSpace:
         self.key_prefix = key_prefix
         self.address = address
         self.i_name = i_name
+        self.state = SPACE_CREATING
         self.ros_master_uri = None
         self.ros_master_port = None
         self.master = None          # ManagedProcess of rosmaster, when the master runs here
@@ -782,23 +744,70 @@ class ServiceSpace:
         self.rosout = None
         self.items = []
         self.inbound_port = None
-        self.reason = None
-        self.paired = False
-        self.creating = True
-        self.cancelled = False
+        self.reason = None          # why it can never pair (set once; the items' errors say the rest)
         self.robot = None
         self.driver_link = None
         self.driver_events = []
         self.driver_waiters = []
-        self.reported = False       # robot side: the start report went out; later deaths are events
         self.told = set()           # robot side: keys of the failures already reported
         self.teardown_waiters = None
+
+    def __repr__(self):
+        return f"<ServiceSpace {self.name} {self.state}>"
+
+    def transition(self, new, why):
+        """The only way the space changes state; InvalidTransition for a change the set does not allow."""
+        if new not in SPACE_STATES:
+            raise InvalidTransition(f"service space {self.name}: unknown state {new!r}")
+        old = self.state
+        if old not in _SPACE_SOURCES.get(new, ()):   # nothing goes back to creating
+            raise InvalidTransition(f"service space {self.name}: {old} -> {new} is not allowed")
+        self.state = new
+        log.debug("service space %s: %s -> %s (%s)", self.name, old, new, why)
+
+    @property
+    def creating(self):
+        return self.state == SPACE_CREATING
+
+    @property
+    def paired(self):
+        return self.state == SPACE_PAIRED
+
+    @property
+    def cancelled(self):
+        """Torn down (or being torn down): whatever is still starting gives up."""
+        return self.state in (SPACE_STOPPING, SPACE_GONE)
 
     def key(self, *parts):
         return "/".join((self.key_prefix, self.name) + parts)
 
     def core_processes(self):
         return [p for p in (self.rosout, self.master) if p is not None]
+
+    def pairs(self):
+        """Whether everything the space needs runs now (its state aside)."""
+        if self.reason or not self.ros_master_uri:
+            return False
+        if self.master is not None and self.master.state != RUNNING:
+            return False
+        if self.rosout is not None and self.rosout.state not in (STARTING, RUNNING):
+            return False
+        return all(item.state == RUNNING for item in self.items)
+
+    def why_unpaired(self):
+        if self.reason:
+            return self.reason
+        for item in self.items:
+            if item.state != RUNNING:
+                return f"{item.kind} {item.name} on {item.i_name} is {item.state}" + (
+                    f": {item.current_error}" if item.current_error else "")
+        return "starting"
+
+    def settle(self):
+        """Creation is over (and the space not torn down meanwhile): paired or not. Returns the new state."""
+        if self.creating:
+            self.transition(SPACE_PAIRED if self.pairs() else SPACE_UNPAIRED, "created")
+        return self.state
 
 
 class RemoteRobot(Protocol):
@@ -829,6 +838,8 @@ class _SpaceHost:
     key_prefix = "ss"
 
     def __init__(self, reactor, table, config, env=None, address=None):
+        """``address``: the platform address children advertise (ROS_IP), or a function giving it now (it
+        may appear late, with the VPN); None: ``config.vpn_address``."""
         self.reactor = reactor
         self.table = table
         self.config = config
@@ -839,8 +850,16 @@ class _SpaceHost:
 
     @property
     def address(self):
-        """The platform address children advertise (ROS_IP): given, or looked up now (it may appear late)."""
-        return self._address or _platform_address(self.config)
+        """The platform address children advertise (ROS_IP) now; SpaceError when there is none yet."""
+        address = self._address() if callable(self._address) else self._address
+        address = address or getattr(self.config, "vpn_address", None)
+        if not address:
+            raise SpaceError(f"no platform address: interface {getattr(self.config, 'vpn_interface', '?')} has "
+                             "no IPv4 address and vpn_address is not set")
+        return address
+
+    def _proxy(self, space):
+        return xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
 
     # -- ports --------------------------------------------------------------------------------------------
     def _taken_ros_ports(self):
@@ -907,32 +926,30 @@ class _SpaceHost:
         watching.addErrback(lambda failure: log.error("service space %s: watching rosout: %s", space.name,
                                                       failure.getTraceback()))
 
-    @defer.inlineCallbacks
     def _call_master(self, space, method, *args, what):
         """One XML-RPC call to the space's master, retried until ``master_timeout``: a machine saturated by
         starting processes can make a single call time out although the master is fine."""
-        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
-        deadline = self.reactor.seconds() + self.master_timeout
-        while True:
-            try:
-                result = yield proxy.callRemote(method, "/rcmp_ms", *args)
-                return result
-            except Exception as exc:
-                if space.cancelled:
-                    return None
-                if self.reactor.seconds() > deadline:
-                    raise SpaceError(f"the ROS master on {space.ros_master_uri} could not {what} within "
-                                     f"{self.master_timeout:g} s: {exc}")
-            yield task.deferLater(self.reactor, 0.1, lambda: None)
+        proxy = self._proxy(space)
 
-    @defer.inlineCallbacks
-    def _confirm_when_registered(self, space, managed, names, deadline=None):
+        def attempt():
+            d = proxy.callRemote(method, "/rcmp_ms", *args)
+            return d.addErrback(lambda failure: None if space.cancelled else failure)
+
+        def give_up(exc):
+            raise SpaceError(f"the ROS master on {space.ros_master_uri} could not {what} within "
+                             f"{self.master_timeout:g} s: {exc}")
+        return poll_until(self.reactor, attempt, 0.1, self.master_timeout, give_up)
+
+    def _confirm_when_registered(self, space, managed, names, timeout=None):
         """Mark ``managed`` running as soon as every ROS node in ``names`` is registered with the space's
         master. Fires with the names still missing when it stopped looking: [] once all registered; the
-        missing ones if the process ended, or (no ``deadline``) settled the slow way, or ``deadline`` passed."""
-        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
+        missing ones if the process ended, or (no ``timeout``) settled the slow way, or ``timeout`` passed."""
+        proxy = self._proxy(space)
         missing = list(names)
-        while True:
+
+        @defer.inlineCallbacks
+        def attempt():
+            nonlocal missing
             if space.cancelled or managed.state not in (STARTING, RUNNING):
                 return missing
             still = []
@@ -948,20 +965,18 @@ class _SpaceHost:
                 managed.confirm_running("registered with the ROS master")
                 managed.remember_descendants()  # its nodes now exist: they go wherever it goes
                 return []
-            if deadline is None and managed.state == RUNNING:
+            if timeout is None and managed.state == RUNNING:
                 return missing
-            if deadline is not None and self.reactor.seconds() > deadline:
-                return missing
-            yield task.deferLater(self.reactor, self.registration_poll, lambda: None)
+            return AGAIN
+        return poll_until(self.reactor, attempt, self.registration_poll, timeout, lambda exc: missing)
 
-    @defer.inlineCallbacks
     def _wait_for_master(self, space):
         """Poll the new master's XML-RPC getPid until it answers (no sleeping in place of waiting)."""
-        proxy = xmlrpc.Proxy(space.ros_master_uri.encode(), connectTimeout=1.0, reactor=self.reactor)
-        deadline = self.reactor.seconds() + self.master_timeout
-        while True:
+        proxy = self._proxy(space)
+
+        def attempt():
             if space.cancelled:
-                return
+                return None
             if space.master.state not in (STARTING, RUNNING):
                 raise SpaceError(f"the ROS master on port {space.ros_master_port} {space.master.error}")
             if _PORT_TAKEN in space.master.tail(20):
@@ -969,15 +984,14 @@ class _SpaceHost:
                 # and its bind: say so now rather than after master_timeout
                 raise SpaceError(f"the ROS master could not listen on port {space.ros_master_port}: "
                                  f"{space.master.useful_output(2)}")
-            try:
-                yield proxy.callRemote("getPid", "/rcmp_ms")
-                log.info("service space %s: ROS master answers on %s", space.name, space.ros_master_uri)
-                return
-            except Exception as exc:
-                if self.reactor.seconds() > deadline:
-                    raise SpaceError(f"the ROS master on {space.ros_master_uri} did not answer within "
-                                     f"{self.master_timeout:g} s: {exc}")
-            yield task.deferLater(self.reactor, 0.05, lambda: None)
+            d = proxy.callRemote("getPid", "/rcmp_ms")
+            return d.addCallback(lambda _: log.info("service space %s: ROS master answers on %s", space.name,
+                                                    space.ros_master_uri))
+
+        def give_up(exc):
+            raise SpaceError(f"the ROS master on {space.ros_master_uri} did not answer within "
+                             f"{self.master_timeout:g} s: {exc}")
+        return poll_until(self.reactor, attempt, 0.05, self.master_timeout, give_up)
 
     @defer.inlineCallbacks
     def _core_settled(self, space):
@@ -1016,12 +1030,12 @@ class _SpaceHost:
         it launches register: roslaunch keeps running when one of its nodes cannot start, so its liveness
         alone proves nothing."""
         if item.kind == "node":
-            yield self._confirm_when_registered(space, item.process, [_graph_name(item.name, item.params)])
+            yield self._confirm_when_registered(space, item.process, [graph_name(item.name, item.params)])
             yield item.process.when_settled()
             return
-        deadline = self.reactor.seconds() + self.launcher_nodes_timeout
         names = ["/" + n.lstrip("/") for n in item.nodes]
-        missing = yield self._confirm_when_registered(space, item.process, names, deadline=deadline)
+        missing = yield self._confirm_when_registered(space, item.process, names,
+                                                      timeout=self.launcher_nodes_timeout)
         if missing and not space.cancelled and item.process.state in (STARTING, RUNNING):
             output = item.process.useful_output()
             item.fail(f"node(s) {', '.join(n.lstrip('/') for n in missing)} of launcher {item.name} did not "
@@ -1032,16 +1046,9 @@ class _SpaceHost:
     def _prepare(self, space, item):
         if item.kind == "node":
             item.nodes = [item.name]
-            if item.is_firos:
+            if item.special is not None:
                 try:
-                    item.inbound_port = self._take_inbound_port(space)
-                    space.inbound_port = item.inbound_port
-                except SpaceError as exc:
-                    item.fail(str(exc))
-                    space.reason = str(exc)
-            if item.is_rcm_driver:
-                try:
-                    item.driver_port = self._choose_driver_port()
+                    item.special.prepare(self, space, item)
                 except SpaceError as exc:
                     item.fail(str(exc))
                     space.reason = str(exc)
@@ -1061,22 +1068,11 @@ class _SpaceHost:
         item.nodes = [n for n, _, _ in nodes]
         item.node_types = {n: (p, t) for n, p, t in nodes}
 
-    def _item_argv(self, item):
-        if item.kind == "launcher":
-            return launcher_argv(item.package, item.type_or_file, item.params)
-        params = item.params
-        if item.is_rcm_driver:
-            kept = [p for p in shlex.split(params) if not p.startswith("port=")]
-            params = shlex.join(kept + [f"port={item.driver_port}"])
-        argv = node_argv(item.package, item.type_or_file, item.name, params)
-        if item.is_firos:
-            argv += ["-P", str(item.inbound_port)]
-        return argv
-
     def _spawn_item(self, space, item, env):
+        special = item.special
         try:
-            argv = self._item_argv(item)
-        except ValueError as exc:  # shlex: unbalanced quotes
+            argv = item.argv(special.params(item), special.extra_argv(item)) if special else item.argv()
+        except CommandError as exc:  # params that do not split (validation lets none through)
             item.fail(f"cannot split the params {item.params!r}: {exc}")
             return
         item.process = self.table.spawn(space.key(item.kind, item.name), argv, env,
@@ -1094,7 +1090,6 @@ class _SpaceHost:
     @defer.inlineCallbacks
     def _stop_local(self, space):
         """Stop the space's items here (together), then rosout, then the ROS master; forget them."""
-        space.cancelled = True
         procs = [i.process for i in space.items if i.process is not None]
         yield defer.gatherResults([p.stop() for p in procs], consumeErrors=True)
         for managed in space.core_processes():
@@ -1130,13 +1125,12 @@ class ServiceSpaceManager(_SpaceHost):
         if ss_side not in ("S", "R"):
             raise ValueError(f"ss_side must be S or R, got {service_logic.get('ss_side')!r}")
         robot_name = getattr(robot, "name", pi_name) if robot is not None else pi_name
-        items = []
-        for entry in list(service_logic.get("sn_list") or []) + list(service_logic.get("sl_list") or []):
-            item = ServiceItem.from_dict(entry, None)
-            if item.side not in ("S", "R"):
-                raise ValueError(f"item {item.name}: side must be S or R, got {item.side!r}")
+        try:
+            items = [_mark_special(item) for item in items_of_logic(service_logic)]
+        except CommandError as exc:
+            raise ValueError(f"service logic of {pi_name}: {exc}") from None
+        for item in items:
             item.i_name = self.i_name if item.side == "S" else robot_name
-            items.append(item)
         remote = [i for i in items if i.side == "R"]
         if (remote or ss_side == "R") and robot is None:
             raise ValueError(f"service space {pi_name} has robot-side parts but no robot to run them")
@@ -1150,20 +1144,20 @@ class ServiceSpaceManager(_SpaceHost):
                  len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
         try:
             space.address = self.address
+            base = int(getattr(self.config, "ros_port_base", 11311))
             if ss_side == "S":
-                self._spawn_master(space, int(getattr(self.config, "ros_port_base", 11311)))
+                self._spawn_master(space, base)
                 work = [self._master_ready(space),
                         self._start_local_items(space, [i for i in items if i.side == "S"])]
                 if remote:
                     work.append(self._start_remote(space, robot, remote, None))
                 yield defer.gatherResults(work, consumeErrors=True)
             else:
-                yield self._start_remote(space, robot, remote,
-                                         int(getattr(self.config, "ros_port_base", 11311)))
+                yield self._start_remote(space, robot, remote, base)
                 if not space.cancelled and space.ros_master_uri:
                     yield self._start_local_items(space, [i for i in items if i.side == "S"])
             if not space.cancelled:
-                yield self._connect_drivers(space)
+                yield self._items_started(space)
             yield self._core_settled(space)
         except SpaceError as exc:
             space.reason = str(exc)
@@ -1175,13 +1169,13 @@ class ServiceSpaceManager(_SpaceHost):
         except Exception as exc:  # a bug: keep the space visible (and stoppable) with the reason
             space.reason = f"unexpected error: {exc!r}"
             log.exception("service space %s: unexpected error while creating", pi_name)
-        finally:
-            space.creating = False
         if not space.cancelled:
-            self._pairing_may_have_changed(space)
+            space.settle()
+            if space.paired:
+                self._notify(space)
             level = logging.INFO if space.paired else logging.WARNING
             log.log(level, "service space %s: %s", pi_name,
-                    "paired" if space.paired else f"not paired: {self._why_unpaired(space)}")
+                    "paired" if space.paired else f"not paired: {space.why_unpaired()}")
         return space
 
     @defer.inlineCallbacks
@@ -1208,60 +1202,56 @@ class ServiceSpaceManager(_SpaceHost):
             item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
 
     @defer.inlineCallbacks
-    def _connect_drivers(self, space):
+    def _items_started(self, space):
+        """The special items' ``started`` hooks, in item order (rcm_driver: connect, say r_connection)."""
         for item in space.items:
-            if item.is_rcm_driver and item.process is not None and item.state == RUNNING:
-                yield self._connect_driver(space, item)
+            if item.special is not None and item.process is not None:
+                yield item.special.started(self, space, item)
 
-    @defer.inlineCallbacks
     def _connect_driver(self, space, item):
         """Connect to rcm_driver's port once it accepts and say r_connection for the robot."""
-        endpoint = TCP4ClientEndpoint(self.reactor, "127.0.0.1", item.driver_port, timeout=1)
-        deadline = self.reactor.seconds() + self.driver_timeout
-        while True:
+        def attempt():
             if space.cancelled or item.state not in (STARTING, RUNNING):
+                return None
+            link = ic.DriverLink(space.name, lambda cmd, r_name: self._driver_said(space, cmd, r_name),
+                                 lambda lost: self._driver_lost(space, lost))
+            return ic.connect_driver(self.reactor, item.driver_port, link)
+
+        def give_up(exc):
+            raise SpaceError(f"rcm_driver did not accept connections on port {item.driver_port} "
+                             f"within {self.driver_timeout:g} s: {exc}")
+
+        def connected(link):
+            if link is None:
                 return
-            try:
-                link = yield connectProtocol(endpoint, _DriverLink(space))
-                break
-            except (ierror.ConnectError, ierror.ConnectionRefusedError, ierror.TimeoutError) as exc:
-                if self.reactor.seconds() > deadline:
-                    raise SpaceError(f"rcm_driver did not accept connections on port {item.driver_port} "
-                                     f"within {self.driver_timeout:g} s: {exc}")
-            yield task.deferLater(self.reactor, 0.1, lambda: None)
-        space.driver_link = link
-        link.send("r_connection", space.name)
-        log.info("service space %s: told rcm_driver (port %s) r_connection", space.name, item.driver_port)
+            space.driver_link = link
+            link.send("r_connection", space.name)
+            log.info("service space %s: told rcm_driver (port %s) r_connection", space.name, item.driver_port)
+        return poll_until(self.reactor, attempt, 0.1, self.driver_timeout, give_up).addCallback(connected)
+
+    def _driver_said(self, space, cmd, r_name):
+        log.info("service space %s: rcm_driver says %s %s", space.name, cmd, r_name)
+        space.driver_events.append({"rcm_d_cmd": cmd, "r_name": r_name})
+        waiters, space.driver_waiters = space.driver_waiters, []
+        for wanted, d in waiters:
+            if wanted == (cmd, r_name):
+                d.callback(True)
+            else:
+                space.driver_waiters.append((wanted, d))
+
+    def _driver_lost(self, space, link):
+        if space.driver_link is link:
+            space.driver_link = None
 
     # -- pairing --------------------------------------------------------------------------------------------
-    def _compute_paired(self, space):
-        if space.creating or space.cancelled or space.reason:
-            return False
-        if not space.ros_master_uri:
-            return False
-        if space.master is not None and space.master.state != RUNNING:
-            return False
-        if space.rosout is not None and space.rosout.state not in (STARTING, RUNNING):
-            return False
-        return all(item.state == RUNNING for item in space.items)
-
-    def _why_unpaired(self, space):
-        if space.reason:
-            return space.reason
-        for item in space.items:
-            if item.state != RUNNING:
-                return f"{item.kind} {item.name} on {item.i_name} is {item.state}" + (
-                    f": {item.current_error}" if item.current_error else "")
-        return "starting"
-
     def _pairing_may_have_changed(self, space):
-        if space.creating:
+        if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED):
             return
-        paired = self._compute_paired(space)
+        paired = space.pairs()
         if paired != space.paired:
-            space.paired = paired
+            space.transition(SPACE_PAIRED if paired else SPACE_UNPAIRED, "its processes changed")
             if not paired:
-                log.warning("service space %s: no longer paired: %s", space.name, self._why_unpaired(space))
+                log.warning("service space %s: no longer paired: %s", space.name, space.why_unpaired())
             self._notify(space)
 
     def _notify(self, space):
@@ -1307,11 +1297,12 @@ class ServiceSpaceManager(_SpaceHost):
     @defer.inlineCallbacks
     def _teardown(self, space):
         was_paired = space.paired
-        space.cancelled = True
-        space.paired = False
+        space.transition(SPACE_STOPPING, "teardown")
         log.info("service space %s: tearing down", space.name)
         try:
-            yield self._say_goodbye_to_driver(space)
+            yield defer.gatherResults([defer.maybeDeferred(item.special.stopping, self, space, item)
+                                       for item in space.items if item.special is not None],
+                                      consumeErrors=True)
             has_remote = any(i.side == "R" for i in space.items)
             if space.ss_side == "R":
                 yield self._stop_local(space)          # S items first: the ROS master is on the robot
@@ -1324,6 +1315,7 @@ class ServiceSpaceManager(_SpaceHost):
         finally:
             if self.spaces.get(space.name) is space:
                 del self.spaces[space.name]
+            space.transition(SPACE_GONE, "torn down")
             log.info("service space %s: torn down", space.name)
             if was_paired:
                 self._notify(space)
@@ -1346,13 +1338,14 @@ class ServiceSpaceManager(_SpaceHost):
 
     @defer.inlineCallbacks
     def _say_goodbye_to_driver(self, space):
-        link = space.driver_link
+        link, space.driver_link = space.driver_link, None
         if link is None:
             return
         link.send("r_disconnection", space.name)
         log.info("service space %s: told rcm_driver r_disconnection", space.name)
-        firos_up = any(i.is_firos and i.state == RUNNING for i in space.items)
-        if firos_up:  # give FIROS the chance to remove the robot's entity before it is stopped
+        announced = any(i.special is not None and i.special.announces_entities and i.state == RUNNING
+                        for i in space.items)
+        if announced:  # give FIROS the chance to remove the robot's entity before it is stopped
             waiter = defer.Deferred()
             space.driver_waiters.append((("e_removed", space.name), waiter))
             timeout = self.reactor.callLater(self.driver_goodbye_timeout, waiter.callback, False)
@@ -1367,40 +1360,6 @@ class ServiceSpaceManager(_SpaceHost):
     @defer.inlineCallbacks
     def teardown_all(self):
         yield defer.gatherResults([self.teardown(name) for name in list(self.spaces)], consumeErrors=True)
-
-    # -- service_space/read ---------------------------------------------------------------------------------
-    def describe(self, ss_name):
-        """The ``service_space/read`` payload for ``ss_name`` (CONTRACTS §2), or None when there is none."""
-        space = self.spaces.get(ss_name)
-        if space is None:
-            return None
-        r_nodes, r_launchers = [], []
-        for item in space.items:
-            state, error = item.state, item.current_error
-            if item.kind == "node":
-                entry = {"sn_package": item.package, "sn_type": item.type_or_file, "sn_name": item.name,
-                         "i_name": item.i_name, "state": state}
-                if error:
-                    entry["error"] = error
-                r_nodes.append(entry)
-                continue
-            entry = {"sl_package": item.package, "sl_file_launcher": item.type_or_file, "sl_name": item.name,
-                     "associated_r_nodes": list(item.nodes), "i_name": item.i_name, "state": state}
-            if error:
-                entry["error"] = error
-            r_launchers.append(entry)
-            for node in item.nodes:
-                package, node_type = item.node_types.get(node, (item.package, ""))
-                r_nodes.append({"sn_package": package, "sn_type": node_type, "sn_name": node,
-                                "i_name": item.i_name, "state": state, "launcher": item.name})
-        payload = {"r_nodes": r_nodes, "r_launchers": r_launchers, "public_ip": self.public_ip,
-                   "inbound_port": space.inbound_port, "ros_master_uri": space.ros_master_uri,
-                   "paired": space.paired}
-        if not space.paired and not space.creating:
-            payload["reason"] = self._why_unpaired(space)
-        if space.driver_events:
-            payload["rcm_driver_events"] = list(space.driver_events)
-        return payload
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -1420,10 +1379,11 @@ class RobotSideRunner(_SpaceHost):
     def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
         """Start R items against ``ros_master_uri`` (or a ROS master started here on a free port from
         ``start_ros_master_port`` upward); fires with {"ros_master_uri", "items": [reports]} once each item
-        settled or failed. A space of the same name already here is stopped first."""
+        settled or failed. A space of the same name already here is stopped first. An item that is not a
+        valid service item fails the Deferred with the sentence naming it (nothing starts)."""
         parsed = []
-        for entry in items or []:
-            item = ServiceItem.from_dict(entry, self.i_name)
+        for index, entry in enumerate(items or []):
+            item = _mark_special(ServiceItem.from_entry(entry, self.i_name, index))
             item.side = "R"
             parsed.append(item)
         if ss_name in self.spaces:
@@ -1454,15 +1414,13 @@ class RobotSideRunner(_SpaceHost):
             for item in parsed:
                 if item.process is None and item.error is None:
                     item.fail(str(exc))
-        finally:
-            space.creating = False
-        space.reported = True
+        space.settle()
         space.told.update((i.kind, i.name) for i in parsed if i.state == FAILED)
         return {"ros_master_uri": space.ros_master_uri, "items": [i.report() for i in parsed],
                 "reason": space.reason}
 
     def _pairing_may_have_changed(self, space):
-        if not space.reported or space.cancelled or self.on_item_exited is None:
+        if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED) or self.on_item_exited is None:
             return
         for item in space.items:
             if item.state == FAILED and (item.kind, item.name) not in space.told:
@@ -1487,7 +1445,9 @@ class RobotSideRunner(_SpaceHost):
         if space is None:
             return
         log.info("service space %s: stopping the robot-side items", ss_name)
+        space.transition(SPACE_STOPPING, "the master asked")
         yield self._stop_local(space)
+        space.transition(SPACE_GONE, "stopped")
 
     @defer.inlineCallbacks
     def stop_all(self):

@@ -22,6 +22,7 @@ Owns:
 import argparse
 import configparser
 import dataclasses
+import functools
 import ipaddress
 import logging
 import logging.handlers
@@ -291,9 +292,10 @@ def load_config(home):
 
 
 def master_address_from(own_address):
-    """The default master address: the agent's own VPN address with the last octet 1."""
-    parts = own_address.split(".")
-    return ".".join(parts[:3] + ["1"])
+    """The default master address: the agent's own VPN address with the last octet 1 (``rcmp_event``'s rule:
+    a robot whose master address appears late applies it too)."""
+    from .rcmp_event import master_address_from as rule
+    return rule(own_address)
 
 
 def _interface_ipv4(interface):
@@ -348,9 +350,21 @@ class StartupError(Exception):
     """The agent cannot start (no address, data file unusable, cannot listen); ``str()`` is one line."""
 
 
+def _top_service(config, reactor, table):
+    """The agent's MultiService. With a table of its own: ``rcmp_ms.TableService``, which stops whatever the
+    agent left in the table once the agent has stopped (``top.table``). Given the managed VPN's table
+    (``build_agent``): a plain MultiService, the outer TableService stops that table after the VPN."""
+    from twisted.application import service
+    from . import rcmp_ms
+    if table is not None:
+        top = service.MultiService()
+        top.table = table
+        return top
+    return rcmp_ms.TableService(rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log")))
+
+
 def build_master(config, reactor, table=None):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
-    from twisted.application import service
     from . import rcmp_event, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import TlsError, Tokens, make_site, rdapi_service, tls_options
@@ -378,13 +392,15 @@ def build_master(config, reactor, table=None):
             tls = tls_options(config.rdapi_tls_cert, config.rdapi_tls_key)
         except TlsError as exc:
             raise StartupError(f"{where}: keys 'rdapi_tls_cert'/'rdapi_tls_key': {exc}") from None
-    table = table or rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-    agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip,
+    top = _top_service(config, reactor, table)
+    table = top.table
+    address = functools.partial(platform_address, config)
+    spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, address=address)
+    agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip, spaces=spaces, address=address,
                                    expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
     tokens = Tokens(data, reactor)
     site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent),
                      tokens=tokens, allowed_origins=config.allowed_origins)
-    top = service.MultiService()
     agent.setServiceParent(top)
     tokens.setServiceParent(top)   # loaded before the listener starts: never open by mistake
     rdapi_service(site, config.ext_port, public_ip, reactor=reactor, tls=tls).setServiceParent(top)
@@ -395,11 +411,12 @@ def build_master(config, reactor, table=None):
 
 def build_robot(config, reactor, table=None):
     """A robot or a server VM: the RobotAgent as one MultiService."""
-    from twisted.application import service
     from . import rcmp_event, rcmp_ms
-    table = table or rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-    agent = rcmp_event.RobotAgent(config, table, reactor)
-    top = service.MultiService()
+    top = _top_service(config, reactor, table)
+    table = top.table
+    address = functools.partial(platform_address, config)
+    runner = rcmp_ms.RobotSideRunner(reactor, table, config, address=address)
+    agent = rcmp_event.RobotAgent(config, table, reactor, runner=runner, address=address)
     agent.setServiceParent(top)
     return top
 
@@ -416,9 +433,11 @@ def build_agent(config, reactor, on_error=None):
     if conf is None:
         return build(config, reactor)
     table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
+    top = rcmp_ms.TableService(table)   # stops what the VPN and the agent left, after both stopped
     vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor)
-    return rcmp_vpn.VpnFirst(vpn, rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table),
-                                                   on_error or log.error))
+    rcmp_vpn.VpnFirst(vpn, rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table),
+                                             on_error or log.error)).setServiceParent(top)
+    return top
 
 
 # -- main -------------------------------------------------------------------------------------------------------

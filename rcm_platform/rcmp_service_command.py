@@ -3,7 +3,9 @@
 Each command validates its input (``rcmp_command``), does its SQLite work in a thread (``deferToThread``) and
 returns a Deferred firing with the ``reason`` of an OK answer or failing with a ``CommandError``. Reads of service
 logics are answered from a ``ReadCache`` while the robotics data has not changed. Service spaces are live state
-owned by the master runtime: ``spaces.describe(ss_name)`` (the ServiceSpaceManager) answers for them.
+owned by the master runtime: ``spaces.describe(ss_name)`` (the ``MasterAgent``) answers for them, with this
+module's renderers: ``describe`` (a space of the ``rcmp_ms.ServiceSpaceManager``) and ``describe_waiting`` (a space
+waiting in line to be built).
 """
 
 from twisted.internet import defer, threads
@@ -11,8 +13,52 @@ from twisted.internet import defer, threads
 from .rcmp_command import command, NotFound, ReadCache, require_fields, validate_name, validate_service_logic
 
 
+def describe_waiting(place, limit, public_ip):
+    """The ``service_space/read`` payload of a space waiting to be built, ``place`` in line."""
+    return {"r_nodes": [], "r_launchers": [], "public_ip": public_ip, "inbound_port": None,
+            "ros_master_uri": None, "paired": False, "waiting": True,
+            "reason": f"waiting to be built: number {place} in line; the master builds at most "
+                      f"{limit} service spaces at once"}
+
+
+def describe(host, ss_name):
+    """The ``service_space/read`` payload (CONTRACTS §2) of ``ss_name`` on ``host`` (a ServiceSpaceManager:
+    ``spaces`` by name and ``public_ip``), or None when there is no such space."""
+    space = host.spaces.get(ss_name)
+    if space is None:
+        return None
+    r_nodes, r_launchers = [], []
+    for item in space.items:
+        state, error = item.state, item.current_error
+        if item.kind == "node":
+            entry = {"sn_package": item.package, "sn_type": item.type_or_file, "sn_name": item.name,
+                     "i_name": item.i_name, "state": state}
+            if error:
+                entry["error"] = error
+            r_nodes.append(entry)
+            continue
+        entry = {"sl_package": item.package, "sl_file_launcher": item.type_or_file, "sl_name": item.name,
+                 "associated_r_nodes": list(item.nodes), "i_name": item.i_name, "state": state}
+        if error:
+            entry["error"] = error
+        r_launchers.append(entry)
+        for node in item.nodes:
+            package, node_type = item.node_types.get(node, (item.package, ""))
+            r_nodes.append({"sn_package": package, "sn_type": node_type, "sn_name": node,
+                            "i_name": item.i_name, "state": state, "launcher": item.name})
+    payload = {"r_nodes": r_nodes, "r_launchers": r_launchers, "public_ip": host.public_ip,
+               "inbound_port": space.inbound_port, "ros_master_uri": space.ros_master_uri,
+               "paired": space.paired}
+    if not space.paired and not space.creating:
+        payload["reason"] = space.why_unpaired()
+    if space.driver_events:
+        payload["rcm_driver_events"] = list(space.driver_events)
+    return payload
+
+
 class ServiceCommands:
-    """``data``: RoboticsData; ``spaces``: object with ``describe(ss_name) -> dict | None`` or None."""
+    """``data``: RoboticsData; ``spaces``: object with ``describe(ss_name) -> dict | None`` (the MasterAgent) or
+    None."""
 
     def __init__(self, data, spaces=None):
         self.data = data

@@ -97,9 +97,6 @@ class Spaces:
     def teardown_all(self):
         return defer.gatherResults([self.teardown(n) for n in list(self.robots)])
 
-    def describe(self, ss_name):
-        return None
-
     def item_exited(self, ss_name, report):
         self.exited.append((ss_name, report))
 
@@ -146,7 +143,6 @@ class AgentTests(unittest.TestCase):
 
     @defer.inlineCallbacks
     def setUp(self):
-        self.patch(rcmp_event, "_platform_address", lambda cfg: cfg.vpn_address)
         self.patch(rcmp_event, "AFTER_DISCONNECT", 0.5)
         self.port = free_port()
         self.data = Data(provisioned={"robot1"})
@@ -331,7 +327,6 @@ class AddressTests(unittest.TestCase):
     @defer.inlineCallbacks
     def test_robot_waits_for_its_address_then_connects(self):
         address = {"now": None}
-        self.patch(rcmp_event, "_platform_address", lambda cfg: address["now"])
         self.patch(rcmp_event, "ADDRESS_POLL", 0.05)
         port = free_port()
         data = Data(provisioned={"robot1"})
@@ -345,7 +340,7 @@ class AddressTests(unittest.TestCase):
         log = Logged()
         logging.getLogger("rcmp").addHandler(log)
         self.addCleanup(logging.getLogger("rcmp").removeHandler, log)
-        robot = rcmp_event.RobotAgent(robot_config, None, reactor, runner=Runner())
+        robot = rcmp_event.RobotAgent(robot_config, None, reactor, runner=Runner(), address=lambda: address["now"])
         robot.startService()
         self.addCleanup(robot.stopService)
         yield until(lambda: any("waiting for the platform address" in line for line in log.lines))

@@ -479,6 +479,20 @@ class RealProcessTests(unittest.TestCase):
             self.assertIn("ghost-binary", mp.error)
         return d.addCallback(check)
 
+    @defer.inlineCallbacks
+    def test_stopping_the_agents_services_stops_what_they_left_in_the_table(self):
+        """TableService: the last safety net. An agent service that forgets a child does not leave it running."""
+        from twisted.application import service
+        top = rcmp_ms.TableService(self.table)
+        forgetful = service.Service()             # an agent whose own teardown stops nothing
+        forgetful.setServiceParent(top)
+        top.startService()
+        mp = self.spawn("left", "import time; time.sleep(60)")
+        yield mp.when_settled()
+        yield top.stopService()
+        self.assertEqual(mp.state, EXITED)
+        self.assertFalse(group_alive(mp.pid))
+
 
 AGENT = """
 import os, sys

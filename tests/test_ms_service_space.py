@@ -11,11 +11,13 @@ import subprocess
 import tempfile
 from types import SimpleNamespace
 
+import pytest
 import rosgraph
 from twisted.internet import defer, reactor, task, threads
 from twisted.trial import unittest
 
-from rcm_platform import rcmp_ms
+from rcm_platform import rcmp_command, rcmp_ms
+from rcm_platform.rcmp_service_command import describe
 from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
 from tests.support.polling import until_deferred
 from tests.support.ports import port_accepts, ros_port_base
@@ -149,7 +151,7 @@ class ServiceSpaceTests(unittest.TestCase):
                                              node("r_talker", side="R", params="_topic:=r_chatter")],
                  "sl_list": []}
         space = yield self.manager.create("robot1", logic, self.robot)
-        self.assertTrue(space.paired, self.manager.describe("robot1"))
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
         self.assertEqual(self.states, [("robot1", True)])
         uri = space.ros_master_uri
         self.assertTrue(uri.startswith(f"http://{MASTER_IP}:"))
@@ -165,7 +167,7 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertIn(f"//{ROBOT_IP}:", r_api)
         self.assertIn(f"//{MASTER_IP}:", s_api)
 
-        described = self.manager.describe("robot1")
+        described = describe(self.manager, "robot1")
         nodes = {n["sn_name"]: n for n in described["r_nodes"]}
         self.assertEqual(nodes["s_talker"]["i_name"], "master")
         self.assertEqual(nodes["r_talker"]["i_name"], "robot1")
@@ -184,18 +186,18 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual([key for key, state in order if state == "exited"], [
             "robot/robot1/node/r_talker", "ss/robot1/node/s_talker", "ss/robot1/rosout", "ss/robot1/rosmaster"])
         self.assertEqual(self.states, [("robot1", True), ("robot1", False)])
-        self.assertIsNone(self.manager.describe("robot1"))
+        self.assertIsNone(describe(self.manager, "robot1"))
         self.assertEqual(processes_with_env("ROS_LOG_DIR", self.tmp), [])
         self.assertFalse(port_accepts(space.ros_master_port), "the ROS master still listens")
 
     @defer.inlineCallbacks
     def test_an_empty_service_logic_pairs_once_the_ros_master_runs_and_rosout_follows(self):
         space = yield self.manager.create("robot1", {"ss_side": "S", "sn_list": [], "sl_list": []}, self.robot)
-        self.assertTrue(space.paired, self.manager.describe("robot1"))
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
         # pairing waits for the ROS master only; rosout (logs) registers on its own shortly after
         yield until_deferred(lambda: space.rosout.state == RUNNING, timeout=10, message="rosout to register")
         self.assertEqual(self.robot.calls, [])  # nothing to ask the robot
-        described = self.manager.describe("robot1")
+        described = describe(self.manager, "robot1")
         self.assertEqual((described["r_nodes"], described["r_launchers"]), ([], []))
         yield self.manager.teardown("robot1")
 
@@ -204,8 +206,8 @@ class ServiceSpaceTests(unittest.TestCase):
         logic = {"sn_list": [], "sl_list": [launcher("two", params="prefix:=xx"),
                                             launcher("rtwo", side="R", params="prefix:=rr")]}
         space = yield self.manager.create("robot1", logic, self.robot)
-        self.assertTrue(space.paired, self.manager.describe("robot1"))
-        described = self.manager.describe("robot1")
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
+        described = describe(self.manager, "robot1")
         launchers = {entry["sl_name"]: entry for entry in described["r_launchers"]}
         self.assertEqual(sorted(launchers["two"]["associated_r_nodes"]), ["xx_talker_a", "xx_talker_b"])
         self.assertEqual(sorted(launchers["rtwo"]["associated_r_nodes"]), ["rr_talker_a", "rr_talker_b"])
@@ -241,7 +243,7 @@ class ServiceSpaceTests(unittest.TestCase):
         logic = {"sl_list": [launcher("half", package="ms_bad_launch", launch_file="half.launch")]}
         space = yield self.manager.create("robot1", logic, None)
         self.assertFalse(space.paired)
-        entry = self.manager.describe("robot1")["r_launchers"][0]
+        entry = describe(self.manager, "robot1")["r_launchers"][0]
         self.assertEqual(sorted(entry["associated_r_nodes"]), ["bad_half", "good_half"])
         self.assertEqual(entry["state"], FAILED)
         self.assertIn("bad_half", entry["error"])
@@ -262,7 +264,7 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(self.states, [])
 
         def failed_ones():  # on a loaded machine an item may exit just after the settle time
-            described = self.manager.describe("robot1")
+            described = describe(self.manager, "robot1")
             states = {n["sn_name"]: n["state"] for n in described["r_nodes"]}
             return described if states["ghost"] == states["crash"] == FAILED else None
         described = yield self.wait_for(failed_ones, what="ghost and crash to fail")
@@ -293,14 +295,14 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(self.states, [("robot1", True), ("robot1", False)])
         self.assertEqual(self.exits[0][0], "robot1")
         self.assertEqual(self.exits[0][1]["name"], "r_talker")
-        r_node = [n for n in self.manager.describe("robot1")["r_nodes"] if n["sn_name"] == "r_talker"][0]
+        r_node = [n for n in describe(self.manager, "robot1")["r_nodes"] if n["sn_name"] == "r_talker"][0]
         self.assertEqual(r_node["state"], FAILED)
         self.assertIn(f"killed by signal {int(signal.SIGKILL)}", r_node["error"])
 
         s_proc = self.master_table.get("ss/robot1/node/s_talker")
         os.killpg(s_proc.pid, signal.SIGKILL)
         yield self.wait_for(lambda: s_proc.state == FAILED, what="the S node to fail")
-        s_node = [n for n in self.manager.describe("robot1")["r_nodes"] if n["sn_name"] == "s_talker"][0]
+        s_node = [n for n in describe(self.manager, "robot1")["r_nodes"] if n["sn_name"] == "s_talker"][0]
         self.assertEqual(s_node["state"], FAILED)
         yield self.manager.teardown("robot1")
         self.assertEqual(self.states[-1], ("robot1", False))
@@ -311,7 +313,7 @@ class ServiceSpaceTests(unittest.TestCase):
         logic = {"ss_side": "R", "sn_list": [node("s_talker", params="_topic:=s_chatter"),
                                              node("r_talker", side="R", params="_topic:=r_chatter")]}
         space = yield self.manager.create("robot1", logic, self.robot)
-        self.assertTrue(space.paired, self.manager.describe("robot1"))
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
         self.assertTrue(space.ros_master_uri.startswith(f"http://{ROBOT_IP}:"))
         self.assertEqual(self.robot.calls[0][4], self.master_config.ros_port_base)
         self.assertIsNotNone(self.robot_table.get("robot/robot1/rosmaster"))
@@ -332,7 +334,7 @@ class ServiceSpaceTests(unittest.TestCase):
                             what="robot2's node on robot2's master")
         yield self.manager.teardown("robot1")
         self.assertTrue(port_accepts(second.ros_master_port))
-        self.assertIsNotNone(self.manager.describe("robot2"))
+        self.assertIsNotNone(describe(self.manager, "robot2"))
 
     @defer.inlineCallbacks
     def test_a_ros_master_port_taken_after_it_was_chosen_fails_the_space_at_once_with_the_reason(self):
@@ -347,7 +349,7 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertFalse(space.paired)
         self.assertIn(f"could not listen on port {taken}", space.reason)
         self.assertLess(reactor.seconds() - started, self.manager.master_timeout / 2)
-        self.assertIn("could not listen", self.manager.describe("robot1")["reason"])
+        self.assertIn("could not listen", describe(self.manager, "robot1")["reason"])
         yield self.manager.teardown("robot1")
         self.assertEqual(processes_with_env("ROS_LOG_DIR", self.tmp), [])
 
@@ -357,7 +359,7 @@ class ServiceSpaceTests(unittest.TestCase):
             yield self.manager.create("robot1", {"sn_list": [{"sn_name": "x"}]}, None)
         with self.assertRaises(ValueError):
             yield self.manager.create("robot1", {"sn_list": [node("r", side="R")]}, None)
-        self.assertIsNone(self.manager.describe("robot1"))
+        self.assertIsNone(describe(self.manager, "robot1"))
         self.assertEqual(self.master_table.processes(), [])
 
     @defer.inlineCallbacks
@@ -368,7 +370,7 @@ class ServiceSpaceTests(unittest.TestCase):
         yield self.manager.teardown("robot1")
         space = yield creating
         self.assertFalse(space.paired)
-        self.assertIsNone(self.manager.describe("robot1"))
+        self.assertIsNone(describe(self.manager, "robot1"))
         yield self.wait_for(lambda: not processes_with_env("ROS_LOG_DIR", self.tmp), what="no process left")
 
     @defer.inlineCallbacks
@@ -379,12 +381,12 @@ class ServiceSpaceTests(unittest.TestCase):
             space = yield self.manager.create(name, logic, None)
             spaces.append(space)
         ports = self.master_config.inbound_open_ports
-        self.assertTrue(spaces[0].paired, self.manager.describe("robot1"))
-        self.assertTrue(spaces[1].paired, self.manager.describe("robot2"))
+        self.assertTrue(spaces[0].paired, describe(self.manager, "robot1"))
+        self.assertTrue(spaces[1].paired, describe(self.manager, "robot2"))
         self.assertEqual(sorted([spaces[0].inbound_port, spaces[1].inbound_port]), sorted(ports))
-        self.assertEqual(self.manager.describe("robot1")["inbound_port"], spaces[0].inbound_port)
+        self.assertEqual(describe(self.manager, "robot1")["inbound_port"], spaces[0].inbound_port)
         yield self.wait_for(lambda: port_accepts(spaces[0].inbound_port), what="FIROS on its -P port")
-        third = self.manager.describe("robot3")
+        third = describe(self.manager, "robot3")
         self.assertFalse(spaces[2].paired)
         self.assertIsNone(third["inbound_port"])
         self.assertIn("no inbound open port left", third["reason"])
@@ -393,7 +395,7 @@ class ServiceSpaceTests(unittest.TestCase):
         yield self.manager.teardown("robot1")     # releases its port
         yield self.wait_for(lambda: not port_accepts(spaces[0].inbound_port), what="FIROS to let go of its port")
         again = yield self.manager.create("robot3", logic, None)
-        self.assertTrue(again.paired, self.manager.describe("robot3"))
+        self.assertTrue(again.paired, describe(self.manager, "robot3"))
         self.assertEqual(again.inbound_port, spaces[0].inbound_port)
 
     @defer.inlineCallbacks
@@ -401,8 +403,8 @@ class ServiceSpaceTests(unittest.TestCase):
         self.manager.driver_goodbye_timeout = 0.5
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
         space = yield self.manager.create("robot1", logic, None)
-        self.assertTrue(space.paired, self.manager.describe("robot1"))
-        driver = [i for i in space.items if i.is_rcm_driver][0]
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
+        driver = [i for i in space.items if i.special is rcmp_ms.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]][0]
         self.assertIn(f"port={driver.driver_port}", driver.process.argv)
         # rcm_driver's default port or the next free ones, never an ephemeral (port-0) one that a stranger can take
         self.assertTrue(rcmp_ms.RCM_DRIVER_PORT <= driver.driver_port < 32768, driver.driver_port)
@@ -419,10 +421,10 @@ class ServiceSpaceTests(unittest.TestCase):
         yield threads.deferToThread(subprocess.run, [
             "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
             "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
-        yield self.wait_for(lambda: self.manager.describe("robot1").get("rcm_driver_events"),
+        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
                             what="e_created from rcm_driver")
         self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
-                      self.manager.describe("robot1")["rcm_driver_events"])
+                      describe(self.manager, "robot1")["rcm_driver_events"])
         yield self.manager.teardown("robot1")
 
 
@@ -439,15 +441,15 @@ def _node_names(master):
 
 
 def test_item_argv_never_goes_through_a_shell():
-    assert rcmp_ms.node_argv("pkg", "node.py", "n1", "a:=1 'b c' _x:=2") == [
+    assert rcmp_command.node_argv("pkg", "node.py", "n1", "a:=1 'b c' _x:=2") == [
         "rosrun", "pkg", "node.py", "a:=1", "b c", "_x:=2", "__name:=n1"]
-    argv = rcmp_ms.launcher_argv("pkg", "x.launch", "prefix:=p; rm -rf /")
+    argv = rcmp_command.launcher_argv("pkg", "x.launch", "prefix:=p; rm -rf /")
     assert argv[0] == "roslaunch" and "--wait" in argv
     assert argv[-6:] == ["pkg", "x.launch", "prefix:=p;", "rm", "-rf", "/"]  # just words; nothing runs them
 
 
 def test_child_env_points_at_the_space():
-    env = rcmp_ms.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
+    env = rcmp_command.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
                              "ROS_NAMESPACE": "/x"}, "http://10.8.0.1:11312/", "10.8.0.1", "/h/log/ros")
     assert env["PATH"].split(":")[0] == "/usr/bin"
     assert env["PATH"].endswith("/root/.pyenv/shims")
@@ -457,3 +459,46 @@ def test_child_env_points_at_the_space():
     assert env["ROS_PACKAGE_PATH"] == "/ws/src"
     assert "ROS_NAMESPACE" not in env
 
+
+
+def test_a_space_changes_state_only_as_its_closed_set_allows():
+    space = rcmp_ms.ServiceSpace("robot1", "S", "ss", None, "master")
+    assert (space.state, space.creating, space.paired, space.cancelled) == ("creating", True, False, False)
+    with pytest.raises(rcmp_ms.InvalidTransition):
+        space.transition(rcmp_ms.SPACE_GONE, "a space is stopped before it is gone")
+    space.transition(rcmp_ms.SPACE_UNPAIRED, "created")
+    space.transition(rcmp_ms.SPACE_PAIRED, "its items run")
+    assert space.paired and not space.creating
+    with pytest.raises(rcmp_ms.InvalidTransition):
+        space.transition(rcmp_ms.SPACE_CREATING, "never again")
+    space.transition(rcmp_ms.SPACE_STOPPING, "teardown")
+    assert space.cancelled and not space.paired
+    with pytest.raises(rcmp_ms.InvalidTransition):
+        space.transition(rcmp_ms.SPACE_PAIRED, "a stopping space never pairs again")
+    space.transition(rcmp_ms.SPACE_GONE, "torn down")
+    assert space.cancelled
+    with pytest.raises(rcmp_ms.InvalidTransition):
+        space.transition("lost", "not a state")
+
+
+def test_special_items_are_recognised_in_one_table():
+    logic = {"sn_list": [node("f", package="firos", node_type="core.py"),
+                         node("d", package="rcm", node_type="rcm_driver.py", params="port=1 x:=2"),
+                         node("t")],
+             "sl_list": [launcher("l", package="firos", launch_file="core.py")]}
+    items = {i.name: rcmp_ms._mark_special(i) for i in rcmp_command.items_of_logic(logic)}
+    assert items["f"].special is rcmp_ms.SPECIAL_ITEMS[("firos", "core.py")]
+    assert items["d"].special is rcmp_ms.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]
+    assert items["t"].special is None and items["l"].special is None   # only nodes are special
+    items["f"].inbound_port, items["d"].driver_port = 10100, 9999
+    firos, driver = items["f"].special, items["d"].special
+    assert items["f"].argv(firos.params(items["f"]), firos.extra_argv(items["f"]))[-2:] == ["-P", "10100"]
+    argv = items["d"].argv(driver.params(items["d"]), driver.extra_argv(items["d"]))
+    assert argv == ["rosrun", "rcm", "rcm_driver.py", "x:=2", "port=9999", "__name:=d"]
+
+
+def test_items_are_built_from_validated_entries_only():
+    with pytest.raises(rcmp_command.BadRequest, match=r"sn_list\[0\] lacks the required field 'sn_side'"):
+        rcmp_command.items_of_logic({"sn_list": [{"sn_name": "x", "sn_package": "p", "sn_type": "t"}]})
+    with pytest.raises(rcmp_command.BadRequest, match="cannot be split"):
+        rcmp_command.ServiceItem.from_entry(node("x", params="'unbalanced"), "robot1")

@@ -1,0 +1,59 @@
+"""The agent's modules import one way down (issue 10 item 4): no circle, not even inside a function.
+
+``rcmp_node`` assembles the agent and passes the runtime in; the runtime and the agent layer import only the
+modules below them. Read from the source with ``ast`` (every import statement, wherever it is).
+"""
+
+import ast
+import os
+
+PACKAGE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "rcm_platform")
+
+# a module may import only modules of a lower layer
+LAYERS = {
+    "rcmp_command": 0, "rcmp_wd": 0, "rcmp_inter_communication": 0,
+    "rcmp_robotics_data": 1, "rcmp_platform_command": 1, "rcmp_service_command": 1, "rcmp_ext_connector": 1,
+    "rcmp_ms": 2, "rcmp_event": 2,
+    "rcmp_node": 3,
+    "__main__": 4,
+}
+
+
+def _imported(module):
+    with open(os.path.join(PACKAGE, module + ".py"), encoding="utf-8") as f:
+        tree = ast.parse(f.read())
+    found = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level == 1 and not base:                 # from . import a, b
+                found.update(alias.name for alias in node.names)
+            elif node.level == 1 or base.startswith("rcm_platform"):
+                name = base.split(".")[-1] if base != "rcm_platform" else ""
+                if name:
+                    found.add(name)
+                else:                                         # from rcm_platform import a, b
+                    found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.Import):
+            found.update(a.name.split(".")[1] for a in node.names if a.name.startswith("rcm_platform."))
+    return found
+
+
+def test_the_seed_modules_have_a_layer():
+    modules = {f[:-3] for f in os.listdir(PACKAGE) if f.endswith(".py") and f != "__init__.py"}
+    assert set(LAYERS) <= modules   # modules added later (rcmp_vpn, rcmp_console) are not placed here
+
+
+def test_imports_go_one_way_down():
+    wrong = []
+    for module, layer in LAYERS.items():
+        for target in _imported(module):
+            if target in LAYERS and LAYERS[target] >= layer:
+                wrong.append(f"{module} imports {target}")
+    assert wrong == []
+
+
+def test_the_runtime_and_the_agents_do_not_know_each_other():
+    assert "rcmp_ms" not in _imported("rcmp_event")
+    assert "rcmp_event" not in _imported("rcmp_ms")
+    assert "rcmp_node" not in _imported("rcmp_ms") | _imported("rcmp_event")
