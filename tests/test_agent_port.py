@@ -54,7 +54,6 @@ class MasterCase(unittest.TestCase):
 
     @defer.inlineCallbacks
     def setUp(self):
-        self.patch(rcmp_event, "_platform_address", lambda cfg: cfg.vpn_address)
         self.port = free_port()
         self.data = self.make_data()
         self.spaces = Spaces()
@@ -549,7 +548,6 @@ class SlowMasterTests(unittest.TestCase):
 
     @defer.inlineCallbacks
     def start(self, handler):
-        self.patch(rcmp_event, "_platform_address", lambda cfg: cfg.vpn_address)
         listening = ic.listen(reactor, "127.0.0.1", 0, handler)
         self.addCleanup(listening.stopListening)
         cfg = config("robot1", "127.0.0.2", listening.getHost().port, role="robot", interval=0.1)
