@@ -282,3 +282,82 @@ def test_server_address_and_admin_token(procs, ros_master, tmp_path):
     assert status == 200 and "p9" in body["reason"]["end_end_test"]["publisher"], body
     # the broker's notifications need no token
     assert on("127.0.0.3", "POST", "/firos", {"subscriptionId": "x", "data": []})[0] == 200
+
+
+# --- row 4 from another host: the probe's attacker on the same network --------------------------------------------
+
+FIROS_PORT = 10100
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def curl(host, method, url, body=None, headers=()):
+    """(status, JSON or text) of one request made with curl inside ``host``; status None when unreachable."""
+    argv = ["curl", "-s", "--max-time", "5", "-o", "-", "-w", "\n%{http_code}", "-X", method]
+    for header in headers:
+        argv += ["-H", header]
+    if body is not None:
+        argv += ["-H", "Content-Type: application/json", "--data-binary", json.dumps(body)]
+    result = host.run(argv + [url], check=False, stderr=None)
+    text, _, status = result.stdout.rpartition("\n")
+    if not status.isdigit() or status == "000":
+        return None, text
+    try:
+        return int(status), json.loads(text) if text else None
+    except ValueError:
+        return int(status), text
+
+
+@pytest.mark.netns
+def test_row4_an_attacker_on_the_lan_cannot_change_what_firos_maps_nor_pick_a_type(lan, tmp_path):
+    from tests.support.processes import ros_env
+    master, attacker = lan.add_host("master"), lan.add_host("attacker")
+    uri = f"http://{master.address}:11311"
+    env = ros_env({"ROS_IP": master.address, "ROS_LOG_DIR": str(tmp_path / "roslog")}, master_uri=uri)
+    master.start(["/usr/bin/rosmaster", "--core", "-p", "11311"], env=env, name="rosmaster")
+    master.start(["/usr/bin/python3", "-m", "tests.ngsi_broker", "--host", master.address, "--port", "1026",
+                  "--quiet"], cwd=REPO, name="ngsi-broker")
+    config = write_config(str(tmp_path / "config"), 1026)
+    with open(os.path.join(config, "config.json")) as f:
+        data = json.load(f)
+    data["test"]["contextbroker"]["address"] = data["test"]["endpoint"]["address"] = master.address
+    with open(os.path.join(config, "config.json"), "w") as f:
+        json.dump(data, f)
+    wait_until(lambda: master.run(["/usr/bin/python3", "-c", "import xmlrpc.client,sys; xmlrpc.client.ServerProxy("
+                                   "sys.argv[1]).getPid('/t')", uri], check=False).returncode == 0,
+               timeout=20, message="the ROS master in the master host")
+    peer = master.start(["/usr/bin/python3", "-m", "tests.support.firos_talker", "--rate", "5",
+                         "--pub", "/end_end_test/s1", "std_msgs/String", json.dumps({"data": "hi"}),
+                         "--sub", "/end_end_test/p1", "std_msgs/String"], env=env, cwd=REPO, name="talker")
+    firos = master.start(["/usr/bin/rosrun", "firos", "core.py", "-P", str(FIROS_PORT), "--config", config],
+                         env=env, name="firos")
+    base = f"http://{master.address}:{FIROS_PORT}"
+
+    def robots_seen_by_attacker():
+        assert firos.poll() is None, lan.procs.output(firos)
+        status, body = curl(attacker, "GET", base + "/robots")
+        return status == 200 and any(r["name"] == "end_end_test" and "p1" in {t["name"] for t in r["topics"]}
+                                     for r in body)
+    wait_until(robots_seen_by_attacker, timeout=30, message="FIROS to map end_end_test, seen from the LAN")
+
+    # the probe: write the whitelist, disconnect, then command with a type of the attacker's choosing
+    status, body = curl(attacker, "POST", base + "/whitelist/write", {"end_end_test": {"publisher": ["evil"]}})
+    assert status == 403 and "machine FIROS runs on" in body["reason"], body
+    assert curl(attacker, "POST", base + "/whitelist/restore")[0] == 403
+    assert curl(attacker, "POST", base + "/robot/disconnect/end_end_test")[0] == 403
+    status, body = curl(attacker, "POST", base + "/firos",
+                        command("end_end_test", "evil", "geometry_msgs.msg.Twist", {"linear": {"x": 1.0}}))
+    assert status == 200 and body["reason"] == {}, body
+    status, body = curl(attacker, "POST", base + "/firos",
+                        command("end_end_test", "p1", "geometry_msgs.msg.Twist", {"linear": {"x": 1.0}}))
+    assert status == 400, body
+    # what it could not do from the LAN, the operator does on the master itself
+    status, body = curl(master, "POST", base + "/whitelist/write", {"end_end_test": {"publisher": ["p2"]}})
+    assert status == 200 and "p2" in body["reason"]["end_end_test"]["publisher"]
+    assert "evil" not in body["reason"]["end_end_test"]["publisher"]
+    # and FIROS is not on the master's other addresses
+    assert curl(master, "GET", f"http://127.0.0.1:{FIROS_PORT}/robots")[0] is None
+    assert curl(attacker, "POST", base + "/firos",
+                command("end_end_test", "p1", "std_msgs.msg.String", {"data": "ok"}))[0] == 200
+    wait_until(lambda: {"data": "ok"} in received(lan.procs, peer, "/end_end_test/p1"), timeout=15,
+               message="the broker-shaped command on /end_end_test/p1")
+    assert all("linear" not in m for m in received(lan.procs, peer, "/end_end_test/p1"))
