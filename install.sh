@@ -14,6 +14,8 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 PROG=install.sh
 if [ -f "$HERE/rcm_platform/rcmp_ext_connector.py" ]; then ROLE=master; else ROLE=robot; fi
 DEFAULT_PORTS="10100, 10101, 10102, 10103"
+DEFAULT_VPN_SUBNET=10.11.12.0/24   # the seed's example (CONTRACTS section 7)
+DEFAULT_VPN_PORT=1194
 COMPONENT_ZIPS=(firos.zip rcm_driver.zip robotics_msgs.zip)
 
 usage() {
@@ -30,10 +32,18 @@ EOF
   --fiware yes|no          FIWARE support: firos, rcm_driver and robotics_msgs into the workspace
                            (default yes when their zips are in this folder)
   --inbound-ports LIST     inbound open ports, comma separated (default "$DEFAULT_PORTS")
+  --vpn yes|no             create the platform's own VPN (OpenVPN, 'rcmp_n vpn init') (default yes)
+  --no-vpn                 the same as --vpn no: the VPN is the administrator's, as in the seed
+  --vpn-subnet CIDR        the VPN's subnet; the master takes its first address (default $DEFAULT_VPN_SUBNET)
+  --vpn-port N             the VPN's UDP port (default $DEFAULT_VPN_PORT)
+  --vpn-remote HOST        the address robots reach the master at (default: the address of ext_interface)
 EOF
     else cat <<EOF
   --robot yes|no           this machine is a robot (no: a server virtual machine) (default yes)
   --name NAME              platform instance name, as provisioned on the master (default: host name)
+  --vpn-config FILE        the client file 'rcmp_n vpn client NAME' wrote on the master: the agent runs the
+                           platform's VPN with it (installed as HOME/vpn/client.conf); 'none': the VPN is the
+                           administrator's (default: none, or keep the one installed)
   --ip-master ADDRESS      the master's VPN address (default: this machine's VPN address, last octet 1)
 EOF
     fi
@@ -104,6 +114,36 @@ check_ipv4() {
     fi
     echo "'$1' is not an IPv4 address (like 10.11.12.1)."; return 1
 }
+check_subnet() {  # an IPv4 network in CIDR form, /8 to /29, its host bits zero (rcmp_n vpn init checks again)
+    local addr bits a o1 o2 o3 o4
+    if [[ "$1" =~ ^([0-9.]+)/([0-9]{1,2})$ ]]; then
+        bits=$((10#${BASH_REMATCH[2]}))
+        if a=$(check_ipv4 "${BASH_REMATCH[1]}") && [ "$bits" -ge 8 ] && [ "$bits" -le 29 ]; then
+            IFS=. read -r o1 o2 o3 o4 <<<"$a"
+            addr=$(( (o1 << 24) | (o2 << 16) | (o3 << 8) | o4 ))
+            if [ $(( addr & ((1 << (32 - bits)) - 1) )) -eq 0 ]; then echo "$a/$bits"; return 0; fi
+            echo "'$1' has host bits set (a network address, like 10.11.12.0/24, is needed)."; return 1
+        fi
+    fi
+    echo "'$1' is not an IPv4 subnet from /8 to /29 (like 10.11.12.0/24)."; return 1
+}
+check_host() {
+    if [[ "$1" =~ ^[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?$ ]]; then echo "$1"
+    else echo "'$1' is not a host name or IPv4 address."; return 1; fi
+}
+check_vpn_config() {  # none, keep (when one is installed), or a client file written by 'rcmp_n vpn client'
+    case "$1" in
+        none|keep) echo "$1"; return 0 ;;
+    esac
+    local f=$1
+    [[ "$f" = /* ]] || f=$PWD/$f
+    if [ ! -f "$f" ] || [ ! -r "$f" ]; then echo "'$1' is not a readable file."; return 1; fi
+    if ! grep -q '^client[[:space:]]*$' "$f" || ! grep -q '^<key>' "$f" || ! grep -q '^<cert>' "$f"; then
+        echo "'$1' is not an OpenVPN client file written by 'rcmp_n vpn client NAME' (client, <cert>, <key>)."
+        return 1
+    fi
+    echo "$f"
+}
 check_name() {
     if [[ "$1" =~ ^[A-Za-z][A-Za-z0-9_]*$ ]]; then echo "$1"
     else echo "'$1' is not a valid name: a letter, then letters, digits and underscores."; return 1; fi
@@ -135,6 +175,9 @@ while [ $# -gt 0 ]; do
     case "$opt" in
         -h|--help) usage; exit 0 ;;
         -n|--non-interactive) INTERACTIVE=no; shift; continue ;;
+        --no-vpn)
+            [ "$ROLE" = master ] || usage_error "unknown option '$opt' for the rcm robot installer"
+            OPT[vpn]=no; shift; continue ;;
         --skip-deps) SKIP_DEPS=yes; shift; continue ;;
         --dry-run) DRY_RUN=yes; shift; continue ;;
         --*=*) set -- "${opt%%=*}" "${opt#*=}" "${@:2}"; continue ;;
@@ -142,9 +185,9 @@ while [ $# -gt 0 ]; do
     case "$opt" in
         --replace-ws|--start|--inbound-ports|--vpn-interface|--vpn-address|--ic-port|--ros-port-base|--home) ;;
         --workspace|--bin-dir|--lib-dir|--service-name) ;;
-        --fiware|--ext-interface|--ext-address|--ext-port)
+        --fiware|--ext-interface|--ext-address|--ext-port|--vpn|--vpn-subnet|--vpn-port|--vpn-remote)
             [ "$ROLE" = master ] || usage_error "unknown option '$opt' for the rcm robot installer" ;;
-        --robot|--name|--ip-master)
+        --robot|--name|--ip-master|--vpn-config)
             [ "$ROLE" = robot ] || usage_error "unknown option '$opt' for the rcm master installer" ;;
         *) usage_error "unknown option '$opt'" ;;
     esac
@@ -170,6 +213,10 @@ while [ $# -gt 0 ]; do
                     --ext-interface) set_opt ext_interface check_ifname "$opt" "$val" ;;
                     --ext-address) set_opt ext_address check_ipv4 "$opt" "$val" ;;
                     --ext-port) set_opt ext_port check_port "$opt" "$val" ;;
+                    --vpn) set_opt vpn check_yesno "$opt" "$val" ;;
+                    --vpn-subnet) set_opt vpn_subnet check_subnet "$opt" "$val" ;;
+                    --vpn-port) set_opt vpn_port check_port "$opt" "$val" ;;
+                    --vpn-remote) set_opt vpn_remote check_host "$opt" "$val" ;;
                     *) usage_error "unknown option '$opt' for the rcm master installer" ;;
                 esac
             else
@@ -177,6 +224,7 @@ while [ $# -gt 0 ]; do
                     --robot) set_opt robot check_yesno "$opt" "$val" ;;
                     --name) set_opt name check_name "$opt" "$val" ;;
                     --ip-master) set_opt ip_master check_ipv4 "$opt" "$val" ;;
+                    --vpn-config) set_opt vpn_config check_vpn_config "$opt" "$val" ;;
                     *) usage_error "unknown option '$opt' for the rcm robot installer" ;;
                 esac
             fi ;;
@@ -184,7 +232,12 @@ while [ $# -gt 0 ]; do
     shift 2
 done
 
+if [ -n "${OPT[vpn_subnet]+set}${OPT[vpn_port]+set}${OPT[vpn_remote]+set}" ]; then
+    [ "${OPT[vpn]:-yes}" = yes ] || usage_error "--no-vpn (--vpn no) cannot go with --vpn-subnet, --vpn-port or --vpn-remote"
+    OPT[vpn]=yes  # settings for the VPN answer the question
+fi
 HOME_DIR=${OPT[home]:-/opt/rcm-platform}
+VPN_DIR=$HOME_DIR/vpn
 WS=${OPT[workspace]:-$HOME/rcmp_ws}
 SERVICE=${OPT[service_name]:-rcmpd}
 BIN_DIR=${OPT[bin_dir]:-/usr/local/bin}
@@ -270,6 +323,18 @@ if [ "$ROLE" = master ]; then
     ask fiware check_fiware "$have_zips" "Do you want FIWARE support (firos, rcm_driver and robotics_msgs in the workspace) $(yn_question "$have_zips")"
     ports_default=$(current inbound_open_ports check_ports); ports_default=${ports_default:-$DEFAULT_PORTS}
     ask inbound_open_ports check_ports "$ports_default" "Inbound open ports, comma separated$(with_default "$ports_default")"
+    if [ -e "$VPN_DIR/server.conf" ]; then
+        # an existing VPN is kept: a new one would need a new client file on every robot
+        if [ -n "${OPT[vpn_subnet]+set}${OPT[vpn_port]+set}${OPT[vpn_remote]+set}" ]; then
+            die "the platform's VPN already exists in $VPN_DIR and is kept: --vpn-subnet, --vpn-port and --vpn-remote only make a new one (to replace it, and every robot's client file: rcmp_n vpn init --force ...). Nothing was changed." 2
+        fi
+        ANS[vpn]=keep
+    else
+        ask vpn check_yesno yes "Do you want the platform to create its own VPN (OpenVPN; no: you run the VPN yourself) $(yn_question yes)"
+    fi
+    ANS[vpn_subnet]=${OPT[vpn_subnet]:-$DEFAULT_VPN_SUBNET}
+    ANS[vpn_port]=${OPT[vpn_port]:-$DEFAULT_VPN_PORT}
+    ANS[vpn_remote]=${OPT[vpn_remote]:-}
 else
     robot_default=$(current robot check_yesno); robot_default=${robot_default:-yes}
     ask robot check_yesno "$robot_default" "Is this machine a robot (no: a virtual machine on the server side) $(yn_question "$robot_default")"
@@ -278,12 +343,23 @@ else
         name_default=$(check_name "$(hostname -s 2>/dev/null | tr '.-' '__')") || name_default=
     fi
     ask name check_name "$name_default" "Name of this platform instance (as provisioned on the master)$(with_default "$name_default")"
+    if [ -e "$VPN_DIR/client.conf" ]; then vpn_default=keep; else vpn_default=none; fi
+    ask vpn_config check_vpn_config "$vpn_default" "OpenVPN client file of this machine, from 'rcmp_n vpn client NAME' on the master (none: you run the VPN yourself)$(with_default "$vpn_default")"
+    if [ "${ANS[vpn_config]}" = keep ] && [ ! -e "$VPN_DIR/client.conf" ]; then
+        die "--vpn-config keep: no client file is installed in $VPN_DIR" 2
+    fi
     master_default=$(current ip_master check_ipv4)
     if [ -z "$master_default" ]; then
         own=$(vpn_guess || true)
         [ -n "$own" ] && master_default=${own%.*}.1
     fi
-    ask ip_master check_ipv4 "$master_default" "VPN address of the rcm master$(with_default "$master_default")"
+    if [ -z "$master_default" ] && [ -z "${OPT[ip_master]+set}" ] && [ "${ANS[vpn_config]}" != none ]; then
+        # the platform's VPN is not up yet: the agent takes its own VPN address with the last octet 1
+        ANS[ip_master]=
+        echo "VPN address of the rcm master: this machine's VPN address with the last octet 1, once the VPN is up (--ip-master to choose)"
+    else
+        ask ip_master check_ipv4 "$master_default" "VPN address of the rcm master$(with_default "$master_default")"
+    fi
     ANS[inbound_open_ports]=${OPT[inbound_open_ports]:-$(current inbound_open_ports check_ports)}
 fi
 ask start check_yesno yes "Do you want to start the rcm daemon now $(yn_question yes)"
@@ -308,7 +384,7 @@ trap 'rm -f "$CFG_TMP"' EXIT
         echo "[main]"
         echo "name=${ANS[name]}"
         echo "robot=${ANS[robot]}"
-        echo "ip_master=${ANS[ip_master]}"
+        [ -z "${ANS[ip_master]}" ] || echo "ip_master=${ANS[ip_master]}"
         [ -z "${ANS[inbound_open_ports]}" ] || echo "inbound_open_ports=${ANS[inbound_open_ports]}"
         keys="vpn_interface vpn_address ic_port ros_port_base"
     fi
@@ -328,6 +404,22 @@ trap 'rm -f "$CFG_TMP"' EXIT
 } >"$CFG_TMP"
 chmod 0644 "$CFG_TMP"
 
+vpn_steps() {  # what happens to the platform's VPN
+    if [ "$ROLE" = master ]; then
+        case "${ANS[vpn]}" in
+            yes) echo "  - create the platform's VPN in $VPN_DIR: subnet ${ANS[vpn_subnet]}, UDP port ${ANS[vpn_port]}, remote ${ANS[vpn_remote]:-the address of the external interface}" ;;
+            keep) echo "  - keep the platform's VPN in $VPN_DIR" ;;
+            *) echo "  - not create a VPN (the administrator runs it)" ;;
+        esac
+    else
+        case "${ANS[vpn_config]}" in
+            none) echo "  - not install a VPN client file (the administrator runs the VPN)" ;;
+            keep) echo "  - keep the VPN client file $VPN_DIR/client.conf" ;;
+            *) echo "  - install ${ANS[vpn_config]} as $VPN_DIR/client.conf (mode 0600)" ;;
+        esac
+    fi
+}
+
 if [ "$DRY_RUN" = yes ]; then
     echo "Dry run: nothing was changed. The installation would:"
     [ "$SKIP_DEPS" = yes ] || echo "  - install the missing dependencies of the rcm $ROLE with apt-get"
@@ -338,6 +430,7 @@ if [ "$DRY_RUN" = yes ]; then
         echo "  - unpack ${COMPONENT_ZIPS[*]} into $WS/src and build it with catkin_make"
     fi
     echo "  - install $BIN_DIR/rcmp_n, $LIB_DIR/rcm_platform, $HOME_DIR/rosconsole.config and /etc/init.d/$SERVICE"
+    vpn_steps
     if [ "${ANS[start]}" = yes ]; then echo "  - start the rcm daemon ($SERVICE)"; else echo "  - not start the rcm daemon"; fi
     echo "  - write $CFG_FILE:"
     sed 's/^/    /' "$CFG_TMP"
@@ -386,8 +479,15 @@ if [ "$build_needed" = yes ]; then
 fi
 
 # --- 3. files, configuration and the init script (root) ----------------------------------------------------------
+VPN_ARGS=()
+if [ "$ROLE" = master ] && [ "${ANS[vpn]}" = yes ]; then
+    VPN_ARGS=(--vpn-subnet "${ANS[vpn_subnet]}" --vpn-port "${ANS[vpn_port]}")
+    [ -z "${ANS[vpn_remote]}" ] || VPN_ARGS+=(--vpn-remote "${ANS[vpn_remote]}")
+elif [ "$ROLE" = robot ] && [ "${ANS[vpn_config]}" != none ] && [ "${ANS[vpn_config]}" != keep ]; then
+    VPN_ARGS=(--vpn-config "${ANS[vpn_config]}")
+fi
 as_root "$HERE/sub_inst.sh" install --role "$ROLE" --src "$HERE" --home "$HOME_DIR" --bin-dir "$BIN_DIR" \
-    --lib-dir "$LIB_DIR" --service-name "$SERVICE" --workspace "$WS" --config "$CFG_TMP"
+    --lib-dir "$LIB_DIR" --service-name "$SERVICE" --workspace "$WS" --config "$CFG_TMP" "${VPN_ARGS[@]}"
 
 # --- 4. the daemon ---------------------------------------------------------------------------------------------------
 if [ "${ANS[start]}" = yes ]; then

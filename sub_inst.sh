@@ -5,9 +5,12 @@
 #   sub_inst.sh deps master|robot        apt-get install the missing dependencies (installed ones are kept)
 #   sub_inst.sh install --role R --src DIR --home DIR --bin-dir DIR --lib-dir DIR --service-name NAME
 #                       --workspace DIR --config FILE
+#                       [--vpn-subnet CIDR --vpn-port N [--vpn-remote HOST]]   (master: create the VPN)
+#                       [--vpn-config FILE]                                    (robot: its VPN client file)
 #                                        rcmp_n, the rcm_platform package, the platform folder with its
 #                                        configuration file and rosconsole.config, /etc/default/NAME and
-#                                        /etc/init.d/NAME registered with update-rc.d
+#                                        /etc/init.d/NAME registered with update-rc.d; the platform's VPN
+#                                        ('rcmp_n vpn init' on a master, HOME/vpn/client.conf 0600 on a robot)
 #   sub_inst.sh start|restart --service-name NAME
 #                                        start the daemon through `service` (restart when it runs)
 # install.sh validates every value before calling it; this script checks them again and changes nothing
@@ -64,6 +67,7 @@ check_service() {
 
 do_install() {
     local role='' src='' home='' bin='' lib='' service='' ws='' config=''
+    local vpn_subnet='' vpn_port='' vpn_remote='' vpn_config=''
     while [ $# -gt 0 ]; do
         [ $# -ge 2 ] || die "install: $1 needs a value" 2
         case "$1" in
@@ -75,6 +79,10 @@ do_install() {
             --service-name) service=$(check_service "$2") ;;
             --workspace) ws=$(abs_dir "$1" "$2") ;;
             --config) config=$2 ;;
+            --vpn-subnet) [[ "$2" =~ ^[0-9.]+/[0-9]{1,2}$ ]] || die "--vpn-subnet: '$2' is not a subnet" 2; vpn_subnet=$2 ;;
+            --vpn-port) [[ "$2" =~ ^[0-9]{1,5}$ ]] || die "--vpn-port: '$2' is not a port" 2; vpn_port=$2 ;;
+            --vpn-remote) [[ "$2" =~ ^[A-Za-z0-9][A-Za-z0-9.-]*$ ]] || die "--vpn-remote: '$2' is not a host" 2; vpn_remote=$2 ;;
+            --vpn-config) vpn_config=$2 ;;
             *) die "install: unknown option '$1'" 2 ;;
         esac
         shift 2
@@ -84,6 +92,14 @@ do_install() {
         [ -n "${!v}" ] || die "install: a value for --${v/_/-} is missing" 2
     done
     [ -r "$config" ] || die "install: the configuration file $config cannot be read" 2
+    if [ -n "$vpn_subnet$vpn_port$vpn_remote" ]; then
+        [ "$role" = master ] || die "install: --vpn-subnet, --vpn-port and --vpn-remote are for a master" 2
+        [ -n "$vpn_subnet" ] && [ -n "$vpn_port" ] || die "install: --vpn-subnet and --vpn-port go together" 2
+    fi
+    if [ -n "$vpn_config" ]; then
+        [ "$role" = robot ] || die "install: --vpn-config is for a robot or server VM" 2
+        [ -f "$vpn_config" ] && [ -r "$vpn_config" ] || die "install: the VPN client file $vpn_config cannot be read" 2
+    fi
     for f in rcmp_n rcmpd ros/rosconsole.config rcm_platform/__init__.py; do
         [ -f "$src/$f" ] || die "install: $src/$f is missing: is $src an unpacked distribution package?" 2
     done
@@ -118,6 +134,26 @@ do_install() {
         echo "Removed $home/$stale_cfg of an earlier installation of the other role"
     fi
     echo "Configured $home/$cfg_name"
+
+    # the platform's VPN (CONTRACTS section 7): HOME/vpn is root's alone (0700); the agent runs OpenVPN with it
+    if [ -n "$vpn_subnet" ]; then
+        if [ -e "$home/vpn/server.conf" ]; then
+            echo "Kept the platform's VPN in $home/vpn"
+        else
+            local -a remote=()
+            [ -z "$vpn_remote" ] || remote=(--remote "$vpn_remote")
+            PYTHONPATH=$lib "$bin/rcmp_n" vpn init --home "$home" --subnet "$vpn_subnet" --port "$vpn_port" \
+                "${remote[@]}" || die "rcmp_n vpn init failed: the platform's VPN was not created"
+            echo "Created the platform's VPN in $home/vpn (subnet $vpn_subnet, UDP port $vpn_port)"
+        fi
+    fi
+    if [ -n "$vpn_config" ]; then
+        install -d -m 0700 "$home/vpn"
+        chmod 0700 "$home/vpn"
+        install -m 0600 "$vpn_config" "$home/vpn/.client.conf.new"
+        mv -f "$home/vpn/.client.conf.new" "$home/vpn/client.conf"
+        echo "Installed the VPN client file as $home/vpn/client.conf"
+    fi
 
     # the init script and its settings
     cat >"/etc/default/$service" <<EOF

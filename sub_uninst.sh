@@ -64,6 +64,20 @@ if [ -n "$RCMP_HOME" ] && [ -d "$RCMP_HOME" ]; then
     # the platform folder holds the configuration, the robotics data and the logs; refuse anything else
     if [ -e "$RCMP_HOME/.init.cfg" ] || [ -e "$RCMP_HOME/init.cfg" ] || [ -e "$RCMP_HOME/rosconsole.config" ] \
             || [ "$(basename "$RCMP_HOME")" = rcm-platform ]; then
+        if [ -d "$RCMP_HOME/vpn" ]; then
+            # the platform's VPN: the agent stopped its OpenVPN (last) above; one still running on these files is ended
+            own_mnt=$(readlink /proc/self/ns/mnt)
+            for pid_dir in /proc/[0-9]*; do
+                [ "$(readlink "$pid_dir/exe" 2>/dev/null)" = /usr/sbin/openvpn ] || continue
+                [ "$(readlink "$pid_dir/ns/mnt" 2>/dev/null)" = "$own_mnt" ] || continue  # another machine's files
+                if tr '\0' '\n' <"$pid_dir/cmdline" 2>/dev/null | grep -qxF -e "$RCMP_HOME/vpn" -e "$RCMP_HOME/vpn/server.conf" \
+                        -e "$RCMP_HOME/vpn/client.conf"; then
+                    kill "${pid_dir#/proc/}" 2>/dev/null && echo "Stopped OpenVPN ${pid_dir#/proc/} of $RCMP_HOME/vpn"
+                fi
+            done
+            rm -rf -- "$RCMP_HOME/vpn"
+            echo "Removed the platform's VPN ($RCMP_HOME/vpn: its certificates, keys and configuration)"
+        fi
         rm -rf -- "$RCMP_HOME"
         echo "Removed $RCMP_HOME"
     else

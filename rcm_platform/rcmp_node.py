@@ -14,6 +14,10 @@ Owns:
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
   Twisted's own log goes to the same place;
 - the platform address (VPN) and the RDAPI address (external interface), looked up with netifaces;
+- the agent's files and environment as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data
+  tightened (``tighten_files``), and the catkin workspace named by ``RCMP_WS`` turned into an environment by
+  running its ``devel/setup.bash`` as the workspace's owner, never as root (``workspace_overlay``,
+  ``WorkspaceOverlay.for_child``, ``apply_workspace``);
 - the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
   SIGTERM/SIGINT before the process exits 0.
@@ -27,9 +31,12 @@ import ipaddress
 import logging
 import logging.handlers
 import os
+import pwd
 import signal
 import socket
 import sqlite3
+import stat
+import subprocess
 import sys
 
 PROG = "rcmp_n"
@@ -344,6 +351,144 @@ def setup_logging(config, level=logging.INFO, to_stderr=True):
     globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="twisted")], redirectStandardIO=False)
 
 
+# -- files and the workspace (the agent runs as root: CONTRACTS §10, docs/SECURITY.md) ---------------------------
+
+UMASK = 0o027   # the agent's files 0640, its folders 0750
+# catkin's variables: search paths naming packages (safe for root to read) and code-loading ones (safe only for
+# a child running as the workspace's owner, or when the workspace is root's alone)
+OVERLAY_SEARCH_KEYS = ("ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH", "ROSLISP_PACKAGE_DIRECTORIES")
+OVERLAY_CODE_KEYS = ("PYTHONPATH", "LD_LIBRARY_PATH", "PKG_CONFIG_PATH", "PATH")
+SYSTEM_PATH = "/usr/bin:/bin:/usr/sbin:/sbin"
+
+
+def tighten_files(home):
+    """Take group-write and every "others" bit off what the agent writes in ``home`` (its log folder and files,
+    the robotics data), as left by an older version that wrote them 0644/0755."""
+    log_dir = os.path.join(home, "log")
+    paths = [log_dir] if os.path.isdir(log_dir) else []
+    if paths:
+        paths += [os.path.join(log_dir, n) for n in os.listdir(log_dir)
+                  if os.path.isfile(os.path.join(log_dir, n))]
+    paths += [os.path.join(home, n) for n in os.listdir(home) if n.startswith("robotics_data.db")] \
+        if os.path.isdir(home) else []
+    for path in paths:
+        try:
+            st = os.lstat(path)
+            if not os.path.islink(path) and st.st_mode & 0o027:
+                os.chmod(path, st.st_mode & 0o7750)
+        except OSError:
+            continue
+
+
+def root_only(path):
+    """True when ``path`` and every folder above it are root's and not writable by group or others (a sticky
+    folder such as /tmp excepted): nobody but root can change what is there."""
+    path = os.path.abspath(path)
+    while True:
+        try:
+            st = os.lstat(path)
+        except OSError:
+            return False
+        if st.st_uid != 0:
+            return False
+        if stat.S_ISLNK(st.st_mode):
+            if not root_only(os.path.realpath(path)):
+                return False
+        elif st.st_mode & 0o022 and not (stat.S_ISDIR(st.st_mode) and st.st_mode & stat.S_ISVTX):
+            return False
+        parent = os.path.dirname(path)
+        if parent == path:
+            return True
+        path = parent
+
+
+@dataclasses.dataclass(frozen=True)
+class WorkspaceOverlay:
+    """A catkin workspace's environment, obtained by running its ``devel/setup.bash`` as the workspace's owner."""
+    workspace: str
+    owner_uid: int
+    owner_gid: int
+    trusted: bool      # the workspace is root's alone: its code may run as root
+    search: dict       # OVERLAY_SEARCH_KEYS found
+    code: dict         # OVERLAY_CODE_KEYS found
+
+    def for_child(self, env, as_owner=False):
+        """``env`` plus this overlay: the search paths always, the code paths only for a child running as the
+        workspace's owner (``as_owner``) or when the workspace is trusted. System folders stay first on PATH."""
+        env = dict(env)
+        env.update(self.search)
+        if as_owner or self.trusted:
+            for key, value in self.code.items():
+                if key == "PATH":
+                    extra = [p for p in value.split(":") if p and p not in SYSTEM_PATH.split(":")]
+                    rest = [p for p in env.get("PATH", "").split(":") if p and p not in SYSTEM_PATH.split(":")]
+                    env["PATH"] = ":".join([SYSTEM_PATH] + rest + [p for p in extra if p not in rest])
+                else:
+                    env[key] = value
+        return env
+
+
+_overlays = {}
+
+
+def workspace_overlay(workspace, timeout=30.0):
+    """The overlay of ``workspace`` (``None`` without ``devel/setup.bash``), computed once per path.
+
+    The script runs in an empty environment as the owner of the workspace folder (``setpriv`` when we are root
+    and the owner is not), never as root for somebody else's files. Raises ``OSError`` when it cannot be run.
+    """
+    workspace = os.path.abspath(workspace)
+    if workspace in _overlays:
+        return _overlays[workspace]
+    setup = os.path.join(workspace, "devel", "setup.bash")
+    if not os.path.isfile(setup):
+        return None
+    st = os.stat(workspace)
+    try:
+        user = pwd.getpwuid(st.st_uid)
+        home, groups = user.pw_dir, ["--init-groups"]
+    except KeyError:
+        home, groups = "/", ["--clear-groups"]
+    argv = ["/bin/bash", "--noprofile", "--norc", "-c", '. "$1" >/dev/null 2>&1 || exit 3; exec env -0',
+            "rcmp_n-workspace", setup]
+    if os.geteuid() == 0 and st.st_uid != 0:
+        argv = ["/usr/bin/setpriv", f"--reuid={st.st_uid}", f"--regid={st.st_gid}", *groups, "--", *argv]
+    result = subprocess.run(argv, env={"PATH": SYSTEM_PATH, "HOME": home, "LC_ALL": "C"}, cwd="/",
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            timeout=timeout, check=False)
+    if result.returncode != 0:
+        raise OSError(f"{setup} failed (exit status {result.returncode})")
+    found = dict(item.decode("utf-8", "replace").split("=", 1)
+                 for item in result.stdout.split(b"\0") if b"=" in item)
+    overlay = WorkspaceOverlay(
+        workspace, st.st_uid, st.st_gid, root_only(workspace) and st.st_uid == 0,
+        {k: found[k] for k in OVERLAY_SEARCH_KEYS if found.get(k)},
+        {k: found[k] for k in OVERLAY_CODE_KEYS if found.get(k)})
+    _overlays[workspace] = overlay
+    return overlay
+
+
+def apply_workspace(environ):
+    """With ``RCMP_WS`` set (rcmpd sets it), put the workspace's overlay into ``environ`` as ``for_child`` says
+    for a root child; returns the overlay or None. Problems are logged, never fatal."""
+    workspace = environ.get("RCMP_WS")
+    if not workspace:
+        return None
+    try:
+        overlay = workspace_overlay(workspace)
+    except (OSError, subprocess.SubprocessError) as exc:
+        log.warning("workspace %s: no overlay: %s", workspace, exc)
+        return None
+    if overlay is None:
+        log.warning("workspace %s has no devel/setup.bash: items find only the system's packages", workspace)
+        return None
+    environ.update(overlay.for_child(environ))
+    log.info("workspace %s (owner uid %d): %s", workspace, overlay.owner_uid,
+             "root's alone: its code may run as root" if overlay.trusted
+             else "not root's: its packages are found, its code runs only as its owner")
+    return overlay
+
+
 # -- assembly ---------------------------------------------------------------------------------------------------
 
 class StartupError(Exception):
@@ -544,6 +689,7 @@ def _fail(message, status):
 def main(argv=None):
     """Run the agent; returns the exit status (0 after SIGTERM/SIGINT, 2 on a configuration error, 1 otherwise)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
+    os.umask(UMASK)
     if args.command == "vpn":
         from . import rcmp_vpn
         return rcmp_vpn.run(args)
@@ -557,6 +703,8 @@ def main(argv=None):
         setup_logging(config, getattr(logging, args.log_level), to_stderr=not args.no_stderr)
     except OSError as exc:
         return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", 1)
+    tighten_files(config.home)
+    apply_workspace(os.environ)
 
     from twisted.internet import reactor
     from twisted.internet.error import ReactorNotRunning

@@ -122,6 +122,7 @@ def test_a_process_left_in_a_host_is_killed_and_reported(tmp_path):
     lan = Lan(log_dir=str(tmp_path))
     a = lan.add_host("alpha")
     stray = subprocess.Popen(a.argv(["sleep", "600"]), start_new_session=True)
+    wait_until(lambda: stray.pid in a.pids(), timeout=10, message="the stray to be in the host")
     with pytest.raises(AssertionError, match="processes left in"):
         lan.close()
     assert stray.wait(timeout=10) == -signal.SIGKILL

@@ -243,7 +243,7 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     ws = user / "rcmp_ws"
     ext_port, ic_port = stable_free_ports(2)
     install = [pkg / "install.sh", "--non-interactive", "--ext-address", "127.0.0.1", "--ext-port", ext_port,
-               "--vpn-address", "127.0.0.1", "--ic-port", ic_port]
+               "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--no-vpn"]
 
     result = run(install, env=user_env(user), cwd=pkg)
     assert "Dependencies:" in result.stdout  # the apt-get step ran (and found everything installed)
@@ -279,8 +279,10 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     assert argv[:2] == ["/usr/bin/python3", BIN]
     assert open("/run/rcmpd.pid").read().strip() == str(pid)
     env = process_env(pid)
-    assert str(ws / "src") in env["ROS_PACKAGE_PATH"].split(":")  # runs inside the workspace overlay
+    # rcmpd sources nothing of the workspace (issue 12): the agent gets its path and makes the overlay itself
+    assert env["RCMP_WS"] == str(ws) and "ROS_PACKAGE_PATH" not in env
     assert env["ROSCONSOLE_CONFIG_FILE"] == os.path.join(HOME, "rosconsole.config")
+    assert f"workspace {ws} (owner uid 0): root's alone" in open(os.path.join(HOME, "log", "rcmp.log")).read()
 
     # -- "Network interfaces Up & Open" -------------------------------------------------------------------------
     assert listening("127.0.0.1", ext_port) and listening("127.0.0.1", ic_port)
@@ -293,7 +295,7 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     assert count.stdout.strip().isdigit()
     write = run(["sqlite3", "-readonly", db, "DELETE FROM service_logic;"], timeout=30, check=False)
     assert write.returncode != 0 and "readonly" in write.stderr
-    assert oct(os.stat(db).st_mode & 0o777) in ("0o644", "0o600") and os.stat(db).st_uid == 0
+    assert oct(os.stat(db).st_mode & 0o777) == "0o640" and os.stat(db).st_uid == 0  # not world-readable
 
     # -- running the wizard again changes the configuration, keeps an administrator's own keys, is safe ---------
     with open(os.path.join(HOME, ".init.cfg"), "a") as f:
@@ -347,7 +349,7 @@ def test_robot_installed_next_to_the_master_pairs_with_it(tmp_path, slot):
     ext_port, ic_port, ros_port = stable_free_ports(3)
 
     run([master_pkg / "install.sh", "-n", "--ext-address", "127.0.0.1", "--ext-port", ext_port,
-         "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--ros-port-base", ros_port],
+         "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--ros-port-base", ros_port, "--no-vpn"],
         env=user_env(user), cwd=master_pkg)
     assert not (user / "rcmp_ws" / "src" / "firos").exists()  # the master zip carries no FIWARE packages
     base = f"http://127.0.0.1:{ext_port}"
@@ -408,7 +410,7 @@ def test_rcmpd_reports_start_failures_stale_pid_files_and_double_starts(tmp_path
     user = tmp_path / "user"
     user.mkdir()
     ext_port, ic_port = stable_free_ports(2)
-    run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--ext-address", "127.0.0.1",
+    run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--no-vpn", "--ext-address", "127.0.0.1",
          "--ext-port", ext_port, "--vpn-address", "127.0.0.1", "--ic-port", ic_port, "--home", places["home"],
          "--bin-dir", places["bin"], "--lib-dir", places["lib"], "--workspace", places["ws"],
          "--service-name", name], env=user_env(user), cwd=pkg)

@@ -22,6 +22,9 @@ START_QUESTION = "Do you want to start the rcm daemon now ([Y]es/no)?"
 ROBOT_QUESTION = "Is this machine a robot (no: a virtual machine on the server side)"
 NAME_QUESTION = "Name of this platform instance (as provisioned on the master)"
 MASTER_IP_QUESTION = "VPN address of the rcm master"
+VPN_QUESTION = "Do you want the platform to create its own VPN (OpenVPN; no: you run the VPN yourself) ([Y]es/no)?"
+VPN_CONFIG_QUESTION = ("OpenVPN client file of this machine, from 'rcmp_n vpn client NAME' on the master "
+                       "(none: you run the VPN yourself)")
 
 
 def make_package(base, role, component_zips=True):
@@ -115,11 +118,15 @@ def test_master_wizard_on_a_terminal_takes_every_default_with_enter(tmp_path, pr
     term.type("")
     term.expect(PORTS_QUESTION)
     term.type("")
+    term.expect(VPN_QUESTION)
+    term.type("")
     term.expect(START_QUESTION)
     term.type("")
     term.expect("Dry run: nothing was changed.")
     assert term.finish() == 0
     out = term.seen
+    assert (f"create the platform's VPN in {setup.platform}/vpn: subnet 10.11.12.0/24, UDP port 1194, "
+            "remote the address of the external interface") in out
     assert f"replace the workspace {setup.home}/rcmp_ws" in out
     assert "unpack firos.zip rcm_driver.zip robotics_msgs.zip" in out
     assert "start the rcm daemon (rcmpd)" in out
@@ -144,6 +151,11 @@ def test_robot_wizard_on_a_terminal_asks_again_after_wrong_answers(tmp_path, pro
     term.expect("'robot-1' is not a valid name")
     term.expect(NAME_QUESTION)
     term.type("robot1")
+    term.expect(VPN_CONFIG_QUESTION + " [none]:")
+    term.type("nosuch.conf")
+    term.expect("'nosuch.conf' is not a readable file.")
+    term.expect(VPN_CONFIG_QUESTION)
+    term.type("")
     term.expect(MASTER_IP_QUESTION + ":")  # no VPN interface here, so no default to offer
     term.type("")
     term.expect("An answer is needed.")
@@ -159,6 +171,7 @@ def test_robot_wizard_on_a_terminal_asks_again_after_wrong_answers(tmp_path, pro
     out = term.seen
     assert f"keep the workspace {setup.home}/rcmp_ws" in out
     assert "not start the rcm daemon" in out
+    assert "not install a VPN client file" in out
     assert f"write {setup.platform}/init.cfg" in out
     assert setup.config_lines(out) == ["[main]", "name=robot1", "robot=yes", "ip_master=10.11.12.1",
                                        "vpn_interface=nosuch0"]
@@ -166,7 +179,7 @@ def test_robot_wizard_on_a_terminal_asks_again_after_wrong_answers(tmp_path, pro
 
 def test_piped_answers_wrong_ones_asked_again(tmp_path):
     setup = Setup(tmp_path, "master")
-    result = setup.run("maybe\nY\nnope\nyes\n80000\n10100,10100\nten\n 10200 , 10201\nNO\n")
+    result = setup.run("maybe\nY\nnope\nyes\n80000\n10100,10100\nten\n 10200 , 10201\nno\nNO\n")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert out.count(SEED_REPLACE_QUESTION) == 2
@@ -178,11 +191,12 @@ def test_piped_answers_wrong_ones_asked_again(tmp_path):
     assert "'ten' in 'ten' is not a port number" in out
     assert setup.config_lines(out) == ["[main]", "inbound_open_ports=10200, 10201", "vpn_interface=nosuch0"]
     assert "not start the rcm daemon" in out
+    assert "not create a VPN (the administrator runs it)" in out
 
 
 def test_replace_question_only_when_the_workspace_exists(tmp_path):
     setup = Setup(tmp_path, "master", existing_ws=False)
-    result = setup.run("\n\n\n")
+    result = setup.run("\n\n\n\n")
     assert result.returncode == 0, result.stderr
     assert "already exists" not in result.stdout
     assert f"create the workspace {setup.home}/rcmp_ws" in result.stdout
@@ -190,7 +204,7 @@ def test_replace_question_only_when_the_workspace_exists(tmp_path):
 
 def test_fiware_cannot_be_chosen_without_the_component_zips(tmp_path):
     setup = Setup(tmp_path, "master", component_zips=False)
-    result = setup.run("\nyes\n\n\n\n")
+    result = setup.run("\nyes\n\n\n\n\n")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert FIWARE_QUESTION + " (yes/[N]o)?" in out  # the default follows what the package holds
@@ -200,7 +214,7 @@ def test_fiware_cannot_be_chosen_without_the_component_zips(tmp_path):
 
 def test_robot_name_and_server_vm(tmp_path):
     setup = Setup(tmp_path, "robot")
-    result = setup.run("\nno\nvm_one\n10.0.0.1\n\n", "--ros-port-base", "12000")
+    result = setup.run("\nno\nvm_one\n\n10.0.0.1\n\n", "--ros-port-base", "12000")
     assert result.returncode == 0, result.stderr
     assert setup.config_lines(result.stdout) == [
         "[main]", "name=vm_one", "robot=no", "ip_master=10.0.0.1", "vpn_interface=nosuch0", "ros_port_base=12000"]
@@ -211,7 +225,7 @@ def test_rerun_offers_the_current_configuration_as_defaults(tmp_path):
     setup.platform.mkdir()
     (setup.platform / "init.cfg").write_text(
         "[main]\nname=robot7\nrobot=yes\nip_master=10.9.8.1\nvpn_address=10.9.8.7\nic_port=9000\n")
-    result = setup.run("\n\n\n\n\n")
+    result = setup.run("\n\n\n\n\n\n")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert NAME_QUESTION + " [robot7]:" in out
@@ -222,7 +236,7 @@ def test_rerun_offers_the_current_configuration_as_defaults(tmp_path):
 
 def test_master_vpn_address_offers_a_default_master_address_to_robots(tmp_path):
     setup = Setup(tmp_path, "robot")
-    result = setup.run("\n\nr2\n\n\n", "--vpn-address", "10.20.30.40")
+    result = setup.run("\n\nr2\n\n\n\n", "--vpn-address", "10.20.30.40")
     assert result.returncode == 0, result.stderr
     assert MASTER_IP_QUESTION + " [10.20.30.1]:" in result.stdout
     assert "ip_master=10.20.30.1" in setup.config_lines(result.stdout)
@@ -231,10 +245,11 @@ def test_master_vpn_address_offers_a_default_master_address_to_robots(tmp_path):
 def test_options_answer_their_questions(tmp_path):
     setup = Setup(tmp_path, "master")
     result = setup.run("\n", "--replace-ws", "no", "--fiware", "no", "--inbound-ports", "10300",
-                       "--ext-address", "127.0.0.1", "--ext-port", "8080", "--ic-port", "9990")
+                       "--ext-address", "127.0.0.1", "--ext-port", "8080", "--ic-port", "9990", "--no-vpn")
     assert result.returncode == 0, result.stderr
     out = result.stdout
     assert "already exists" not in out and FIWARE_QUESTION not in out and "Inbound open ports" not in out
+    assert VPN_QUESTION not in out and "not create a VPN" in out
     assert START_QUESTION in out
     assert setup.config_lines(out) == ["[main]", "inbound_open_ports=10300", "ext_address=127.0.0.1",
                                        "ext_port=8080", "vpn_interface=nosuch0", "ic_port=9990"]
@@ -275,6 +290,17 @@ def test_end_of_input_stops_instead_of_looping(tmp_path):
     ("robot", ["--start", "maybe"], "--start: Please answer yes or no."),
     ("robot", ["--bogus"], "unknown option '--bogus'"),
     ("robot", ["--ip-master"], "--ip-master needs a value"),
+    ("master", ["--vpn-subnet", "198.51.100.7/24"], "'198.51.100.7/24' has host bits set"),
+    ("master", ["--vpn-subnet", "198.51.100.0/30"], "'198.51.100.0/30' is not an IPv4 subnet from /8 to /29"),
+    ("master", ["--vpn-subnet", "198.51.100.0"], "is not an IPv4 subnet"),
+    ("master", ["--vpn-port", "0"], "--vpn-port: '0' is not a port number"),
+    ("master", ["--vpn-remote", "-oops"], "--vpn-remote: '-oops' is not a host name or IPv4 address."),
+    ("master", ["--no-vpn", "--vpn-port", "1195"], "--no-vpn (--vpn no) cannot go with --vpn-subnet"),
+    ("master", ["--vpn-config", "x.conf"], "unknown option '--vpn-config' for the rcm master installer"),
+    ("robot", ["--no-vpn"], "unknown option '--no-vpn' for the rcm robot installer"),
+    ("robot", ["--vpn-subnet", "198.51.100.0/24"], "unknown option '--vpn-subnet' for the rcm robot installer"),
+    ("robot", ["--vpn-config", "/nonexistent/client.conf"], "'/nonexistent/client.conf' is not a readable file."),
+    ("robot", ["--vpn-config", "/etc/hostname"], "is not an OpenVPN client file written by 'rcmp_n vpn client"),
     ("robot", ["-n", "--ip-master", "10.0.0.1", "--name", "r", "--ros-port-base", "12000"],
      "ros_port_base (--ros-port-base) is only for a server virtual machine"),
 ])
@@ -288,8 +314,9 @@ def test_bad_options_are_refused_and_change_nothing(tmp_path, role, args, messag
 
 
 def test_help_names_every_answer_option(tmp_path):
-    for role, words in (("master", ["--fiware", "--inbound-ports", "--ext-address", "--ext-port"]),
-                        ("robot", ["--robot", "--name", "--ip-master"])):
+    for role, words in (("master", ["--fiware", "--inbound-ports", "--ext-address", "--ext-port", "--vpn-subnet",
+                                    "--vpn-port", "--vpn-remote", "--no-vpn"]),
+                        ("robot", ["--robot", "--name", "--ip-master", "--vpn-config"])):
         (tmp_path / role).mkdir()
         setup = Setup(tmp_path / role, role)
         result = subprocess.run([str(setup.pkg / "install.sh"), "--help"], capture_output=True, text=True,
@@ -340,3 +367,58 @@ def test_master_rerun_keeps_its_own_name_key(tmp_path):
     assert result.returncode == 0, result.stderr
     assert setup.config_lines(result.stdout) == ["[main]", "inbound_open_ports=10100", "vpn_interface=nosuch0",
                                                  "name=central"]
+
+
+CLIENT_FILE = "client\ndev tun\nproto udp\nremote 203.0.113.10 1194\n<ca>\nCA\n</ca>\n<cert>\nCERT\n</cert>\n<key>\nKEY\n</key>\n"
+
+
+def test_master_vpn_flags_answer_the_vpn_question(tmp_path):
+    setup = Setup(tmp_path, "master")
+    result = setup.run("", "-n", "--vpn-subnet", "198.51.100.0/24", "--vpn-port", "1195",
+                       "--vpn-remote", "203.0.113.10")
+    assert result.returncode == 0, result.stderr
+    assert VPN_QUESTION not in result.stdout
+    assert (f"create the platform's VPN in {setup.platform}/vpn: subnet 198.51.100.0/24, UDP port 1195, "
+            "remote 203.0.113.10") in result.stdout
+    no_vpn = setup.run("", "-n", "--no-vpn")
+    assert no_vpn.returncode == 0 and "not create a VPN (the administrator runs it)" in no_vpn.stdout
+
+
+def test_master_rerun_keeps_an_existing_vpn_and_refuses_new_settings(tmp_path):
+    setup = Setup(tmp_path, "master")
+    (setup.platform / "vpn").mkdir(parents=True)
+    (setup.platform / "vpn" / "server.conf").write_text("dev tun0\n")
+    result = setup.run("\n\n\n\n")  # replace, FIWARE, ports, start: no VPN question
+    assert result.returncode == 0, result.stderr
+    assert VPN_QUESTION not in result.stdout and f"keep the platform's VPN in {setup.platform}/vpn" in result.stdout
+    refused = setup.run("", "-n", "--vpn-port", "1195")
+    assert refused.returncode == 2
+    assert "already exists" in refused.stderr and "rcmp_n vpn init --force" in refused.stderr
+    assert (setup.platform / "vpn" / "server.conf").read_text() == "dev tun0\n"
+
+
+def test_robot_vpn_config_is_installed_and_ip_master_comes_from_the_vpn(tmp_path):
+    setup = Setup(tmp_path, "robot")
+    client = tmp_path / "robot1.conf"
+    client.write_text(CLIENT_FILE)
+    result = setup.run("", "-n", "--name", "robot1", "--vpn-config", str(client))
+    assert result.returncode == 0, result.stderr
+    out = result.stdout
+    assert f"install {client} as {setup.platform}/vpn/client.conf (mode 0600)" in out
+    assert "last octet 1, once the VPN is up" in out
+    assert setup.config_lines(out) == ["[main]", "name=robot1", "robot=yes", "vpn_interface=nosuch0"]
+    # a relative path is taken from where the installer runs
+    relative = subprocess.run(setup.argv("-n", "--name", "robot1", "--vpn-config", "robot1.conf"), cwd=tmp_path,
+                              capture_output=True, text=True, env=setup.env, timeout=60)
+    assert relative.returncode == 0, relative.stderr
+    assert f"install {client} as" in relative.stdout
+    # an explicit master address is still taken
+    explicit = setup.run("", "-n", "--name", "robot1", "--vpn-config", str(client), "--ip-master", "198.51.100.1")
+    assert "ip_master=198.51.100.1" in setup.config_lines(explicit.stdout)
+    # once installed, a re-run keeps it
+    (setup.platform / "vpn").mkdir(parents=True)
+    (setup.platform / "vpn" / "client.conf").write_text(CLIENT_FILE)
+    again = setup.run("\n\n\n\n\n", "--ip-master", "198.51.100.1")
+    assert again.returncode == 0, again.stderr
+    assert VPN_CONFIG_QUESTION + " [keep]:" in again.stdout
+    assert f"keep the VPN client file {setup.platform}/vpn/client.conf" in again.stdout
