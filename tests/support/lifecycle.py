@@ -193,10 +193,16 @@ class Platform:
         first read that showed it). WaitTimeout names how many and which are missing."""
         started = started or {}
         paired_at = {}
+        self.read_failures = []          # RDAPI reads that failed meanwhile (a saturated master), kept for reports
         deadline = time.monotonic() + timeout
         while True:
+            try:
+                paired = self.paired_now(names)
+            except OSError as exc:       # timed out or refused: the master is busy, not the test's problem yet
+                self.read_failures.append(repr(exc))
+                paired = set()
             now = time.monotonic()
-            for name in self.paired_now(names) - set(paired_at):
+            for name in paired - set(paired_at):
                 paired_at[name] = now - started.get(name, now)
             missing = sorted(set(names) - set(paired_at))
             if not missing:
