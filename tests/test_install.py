@@ -71,12 +71,16 @@ def service(name, action, check=False):
 
 
 def agent_processes(programs=(BIN,)):
-    """pid -> argv of every living process running one of the installed rcmp_n ``programs``."""
+    """pid -> argv of every living process running one of the installed rcmp_n ``programs`` on this machine
+    (processes of test hosts, which have mount namespaces of their own, are other machines' agents)."""
     found = {}
+    own_mnt = os.readlink("/proc/self/ns/mnt")
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
         try:
+            if os.readlink(f"/proc/{entry}/ns/mnt") != own_mnt:
+                continue
             with open(f"/proc/{entry}/cmdline", "rb") as f:
                 argv = [a.decode("utf-8", "replace") for a in f.read().split(b"\0") if a]
         except OSError:
