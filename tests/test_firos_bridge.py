@@ -71,6 +71,10 @@ class FakeTopics:
     def drop_publisher(self, topic):
         self.publishers_dropped.append(topic)
 
+    def publisher_type(self, topic):
+        types = [t for p, t, _ in self.published if p == topic and p not in self.publishers_dropped]
+        return types[-1] if types else None
+
     def publish(self, robot, topic, msg_type, msg, known):
         self.published.append((topic, msg_type, msg))
 
@@ -157,6 +161,11 @@ def test_a_plain_whitelist_name_is_commanded_with_the_type_the_broker_names():
     with pytest.raises(ApiError) as info:
         firos.handle_notification(v2_note("bot", ["go"], go=("Text", {"data": 3})))
     assert info.value.status == 400
+    # the first command chose the type; a later one cannot switch it (issue 12 row 4)
+    with pytest.raises(ApiError) as info:
+        firos.handle_notification(v2_note("bot", ["go"], go=("std_msgs.msg.String", {"data": "x"})))
+    assert info.value.status == 400 and "already publishes /bot/go as std_msgs.msg.Int32" in info.value.reason
+    assert len(firos.topics.published) == 1
 
 
 def test_a_bad_value_publishes_nothing_of_the_notification():

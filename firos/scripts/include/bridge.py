@@ -328,6 +328,10 @@ class Firos:
                 raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r}, "
                                     f"not a message type like std_msgs.msg.String")
             topic, known = f"{robot.namespace}/{relative}", False
+            pinned = self.topics.publisher_type(topic)
+            if pinned is not None and pinned != msg_type:   # the first command chose; later ones cannot switch
+                raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but FIROS "
+                                    f"already publishes {topic} as {message_type_to_attribute_type(pinned)}")
         else:
             return None
         if self.sender.is_own(robot.name, attr, value):

@@ -98,6 +98,12 @@ class TopicHandler:
         log.info("publishing broker commands of %s on %s (%s)", robot, topic, msg_type)
         return pub
 
+    def publisher_type(self, topic):
+        """The message type FIROS's Publisher of ``topic`` has ("pkg/Type"), or None when it has none."""
+        with self._lock:
+            entry = self._publishers.get(topic)
+        return entry[2] if entry is not None else None
+
     def publish(self, robot, topic, msg_type, msg, known_subscribers):
         pub = self.publisher(robot, topic, msg_type, known_subscribers)
         with self._lock:
