@@ -119,6 +119,10 @@ do_install() {
     rm -rf "$lib/.rcm_platform.new"
     mkdir "$lib/.rcm_platform.new"
     install -m 0644 "$src"/rcm_platform/*.py "$lib/.rcm_platform.new/"
+    if [ -d "$src/rcm_platform/console" ]; then  # the master's console (static files, no subfolders)
+        install -d -m 0755 "$lib/.rcm_platform.new/console"
+        install -m 0644 "$src"/rcm_platform/console/* "$lib/.rcm_platform.new/console/"
+    fi
     rm -rf "$lib/rcm_platform"
     mv "$lib/.rcm_platform.new" "$lib/rcm_platform"
     echo "Installed $lib/rcm_platform"

@@ -54,9 +54,11 @@ CORS_WRITE = (
     (b"Access-Control-Max-Age", b"600"),
     (b"Vary", b"Origin"),
 )
-# paths anyone may GET without a token: the welcome page and the console's static files (issue 11)
-PUBLIC_PATHS = ("/",)
+# paths anyone may GET without a token: the welcome page and the console's static files (issue 11), not its
+# API (/console/api/: the platform's state, live), which needs a token like any read
+PUBLIC_PATHS = ("/", "/console")
 PUBLIC_PREFIXES = ("/console/",)
+PRIVATE_PREFIXES = ("/console/api/",)
 
 MAX_CONNECTIONS = 256       # open RDAPI connections at once (the agent's fd limit is at least 1024)
 MAX_PER_ADDRESS = 32        # of which from one source address
@@ -219,12 +221,14 @@ class Rdapi(resource.Resource):
 
     isLeaf = True
 
-    def __init__(self, platform, service, tokens=None, allowed_origins=()):
+    def __init__(self, platform, service, tokens=None, allowed_origins=(), console=None):
         super().__init__()
         self.platform = platform
         self.service = service
         self.tokens = tokens
         self.allowed_origins = frozenset(o.lower() for o in allowed_origins)
+        self.console = console      # rcmp_console.ConsoleResource: everything under /console
+        self._console_route = Route({"GET": None})
         self._encoded = {}  # (path, query) -> (the answer object, its JSON bytes)
         self.routes = {
             "/": Route({"GET": None}),
@@ -269,7 +273,8 @@ class Rdapi(resource.Resource):
 
     @staticmethod
     def is_public(path, method):
-        return method in ("GET", "HEAD") and (path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES))
+        return method in ("GET", "HEAD") and (path in PUBLIC_PATHS or path.startswith(PUBLIC_PREFIXES)) \
+            and not path.startswith(PRIVATE_PREFIXES)
 
     @staticmethod
     def _bearer(request):
@@ -306,7 +311,10 @@ class Rdapi(resource.Resource):
         method = request.method.decode("latin-1")
         path = request.path.decode("latin-1")
         try:
-            route = self.routes.get(path)
+            if self.console is not None and (path == "/console" or path.startswith("/console/")):
+                route = self._console_route   # GET only; its API behind the tokens like any read
+            else:
+                route = self.routes.get(path)
             if route is None:
                 raise NotFound(f"unknown path {path!r}: see the RDAPI documentation for the calls")
             if method == "OPTIONS":
@@ -351,6 +359,8 @@ class Rdapi(resource.Resource):
 
     def _dispatch(self, request, route, method, path):
         """The call itself, once the caller may make it: bytes, or NOT_DONE_YET while the command runs."""
+        if route is self._console_route:
+            return self.console.render(request)
         handler_method = "GET" if method == "HEAD" else method
         if handler_method == "POST":
             if not self.origin_may_write(request):
@@ -598,13 +608,16 @@ class RdapiSite(server.Site):
         pass
 
 
-def make_site(platform, service, max_body=MAX_BODY, tokens=None, allowed_origins=(), **limits):
+def make_site(platform, service, max_body=MAX_BODY, tokens=None, allowed_origins=(), console=None,
+              **limits):
     """The Twisted site serving the RDAPI with ``PlatformCommands`` ``platform`` and ``ServiceCommands`` ``service``.
 
-    ``tokens``: a ``Tokens`` or None (open); ``limits``: ``max_connections``, ``max_per_address``,
-    ``idle_timeout``, ``request_deadline`` of ``RdapiSite``.
+    ``tokens``: a ``Tokens`` or None (open); ``console``: the ``rcmp_console.ConsoleResource`` served under
+    /console/ (its static files public, its API behind the tokens like any read); ``limits``:
+    ``max_connections``, ``max_per_address``, ``idle_timeout``, ``request_deadline`` of ``RdapiSite``.
     """
-    site = RdapiSite(Rdapi(platform, service, tokens=tokens, allowed_origins=allowed_origins), **limits)
+    site = RdapiSite(Rdapi(platform, service, tokens=tokens, allowed_origins=allowed_origins,
+                                   console=console), **limits)
 
     class Request(RdapiRequest):
         pass

@@ -299,7 +299,7 @@ class ManagedProcess:
         self.state = new
         level = logging.WARNING if new == FAILED else logging.INFO
         log.log(level, "process %s (pid %s): %s -> %s (%s)", self.key, self.pid, old, new, why)
-        for listener in list(self.listeners):
+        for listener in list(self.listeners) + list(self.table.observers):
             try:
                 listener(self, old, new)
             except Exception:
@@ -521,6 +521,7 @@ class ProcessTable:
         self.poll_interval = poll_interval
         self.kill_timeout = kill_timeout
         self._procs = {}
+        self.observers = []   # fn(managed, old_state, new_state) after every transition of any child (the console)
         os.makedirs(self.log_dir, exist_ok=True)
 
     def spawn(self, key, argv, env, log_name, core=False):
@@ -1110,6 +1111,7 @@ class ServiceSpaceManager(_SpaceHost):
         super().__init__(reactor, table, config, env=env, address=address)
         self.public_ip = public_ip
         self.on_state = on_state
+        self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes
         self.i_name = "master" if getattr(config, "role", "master") == "master" else config.name
 
     # -- create ---------------------------------------------------------------------------------------------
@@ -1140,6 +1142,7 @@ class ServiceSpaceManager(_SpaceHost):
         space.items = items
         space.robot = robot
         self.spaces[pi_name] = space
+        self._changed(space)
         log.info("service space %s: creating (%d S items, %d R items, ROS master on the %s side)", pi_name,
                  len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
         try:
@@ -1244,7 +1247,15 @@ class ServiceSpaceManager(_SpaceHost):
             space.driver_link = None
 
     # -- pairing --------------------------------------------------------------------------------------------
+    def _changed(self, space):
+        for observer in list(self.observers):
+            try:
+                observer(space.name)
+            except Exception:
+                log.exception("observer of service space %s failed", space.name)
+
     def _pairing_may_have_changed(self, space):
+        self._changed(space)
         if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED):
             return
         paired = space.pairs()
@@ -1319,6 +1330,7 @@ class ServiceSpaceManager(_SpaceHost):
             log.info("service space %s: torn down", space.name)
             if was_paired:
                 self._notify(space)
+            self._changed(space)
             waiters, space.teardown_waiters = space.teardown_waiters, []
             for d in waiters:
                 d.callback(None)

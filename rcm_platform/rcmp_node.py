@@ -510,7 +510,7 @@ def _top_service(config, reactor, table):
 
 def build_master(config, reactor, table=None):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
-    from . import rcmp_event, rcmp_ms, rcmp_vpn
+    from . import rcmp_console, rcmp_event, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import TlsError, Tokens, make_site, rdapi_service, tls_options
     from .rcmp_platform_command import PlatformCommands
@@ -544,9 +544,12 @@ def build_master(config, reactor, table=None):
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip, spaces=spaces, address=address,
                                    expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
     tokens = Tokens(data, reactor)
-    site = make_site(PlatformCommands(data, robots=agent), ServiceCommands(data, spaces=agent),
-                     tokens=tokens, allowed_origins=config.allowed_origins)
+    platform = PlatformCommands(data, robots=agent)
+    console = rcmp_console.Console(reactor, data, platform, agent.spaces, table, describe=agent.describe)
+    site = make_site(platform, ServiceCommands(data, spaces=agent), tokens=tokens,
+                     allowed_origins=config.allowed_origins, console=rcmp_console.ConsoleResource(console))
     agent.setServiceParent(top)
+    rcmp_console.ConsoleService(console).setServiceParent(top)
     tokens.setServiceParent(top)   # loaded before the listener starts: never open by mistake
     rdapi_service(site, config.ext_port, public_ip, reactor=reactor, tls=tls).setServiceParent(top)
     top.rdapi_address = (public_ip, config.ext_port)
@@ -739,7 +742,8 @@ def main(argv=None):
                 pass
             return
         where = getattr(top, "rdapi_address", None)
-        rdapi = f", RDAPI on {top.rdapi_scheme}://{where[0]}:{where[1]}/" if where else ""
+        rdapi = (f", RDAPI on {top.rdapi_scheme}://{where[0]}:{where[1]}/, console on "
+                 f"{top.rdapi_scheme}://{where[0]}:{where[1]}/console/") if where else ""
         log.info("rcmp_n started as %s '%s' in %s%s", config.role, config.name, config.home, rdapi)
 
     def stop():

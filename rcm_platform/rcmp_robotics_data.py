@@ -119,6 +119,7 @@ class RoboticsData:
         self.path = path
         self._forget_live_state = forget_live_state
         self.generation = 0
+        self.observers = []   # fn(generation) after every committed write, on the writing thread (the console)
         self._lock = threading.Lock()
         try:
             self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=30.0)
@@ -179,7 +180,10 @@ class RoboticsData:
                 self._db.execute("ROLLBACK")
                 raise
             self.generation += 1
-            return result
+            generation = self.generation
+        for observer in list(self.observers):
+            observer(generation)
+        return result
 
     def _read(self, func, *args):
         with self._lock:

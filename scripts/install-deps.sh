@@ -15,6 +15,8 @@ PACKAGES=(
   python3-cryptography openvpn
   # tests and benchmarks
   python3-pytest python3-pytest-timeout wrk curl iproute2 procps net-tools
+  # the console's browser tests (headless Chromium driven by Selenium)
+  chromium chromium-driver python3-selenium
   # distribution
   zip unzip
 )

@@ -24,6 +24,9 @@ SEED_MASTER_MODULES = [
     "rcmp_service_command.py", "rcmp_wd.py"]
 EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
                  "rcmp_vpn.py"]  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
+CONSOLE_MODULES = ["rcmp_console.py"]  # ours: the console (CONTRACTS §9), master zip only
+CONSOLE_FILES = ["rcm_platform/console/console.css", "rcm_platform/console/console.js",
+                 "rcm_platform/console/index.html"]  # its static files, master zip only
 SEED_ROBOT_MODULES = [m for m in SEED_MASTER_MODULES if m not in ("rcmp_ext_connector.py", "rcmp_robotics_data.py")]
 SEED_AGENT_FILES = ["ros/rosconsole.config", "install.sh", "sub_inst.sh", "uninstall.sh", "sub_uninst.sh", "rcmpd",
                     "rcmp_n"]
@@ -40,10 +43,13 @@ SEED_FIROS_DIRS = ["firos/", "firos/config/", "firos/scripts/", "firos/scripts/i
 SEED_FIROS_TOP = {"config", "scripts", "CMakeLists.txt", "License.txt", "package.xml", "README.md"}
 
 
-def agent_listing(root, modules, extra=()):
+def agent_listing(root, modules, extra=(), console=False):
     files = [f"{root}/rcm_platform/{m}" for m in modules] + [f"{root}/{f}" for f in SEED_AGENT_FILES]
     files += [f"{root}/{f}" for f in extra]
     dirs = [f"{root}/", f"{root}/rcm_platform/", f"{root}/ros/"]
+    if console:
+        files += [f"{root}/rcm_platform/{m}" for m in CONSOLE_MODULES] + [f"{root}/{f}" for f in CONSOLE_FILES]
+        dirs.append(f"{root}/rcm_platform/console/")
     return sorted(files + dirs)
 
 
@@ -58,12 +64,13 @@ def with_dirs(files):
 
 EXPECTED = {
     "master": ("rcm_platform_master.zip",
-               agent_listing("rcm_platform_master", SEED_MASTER_MODULES + EXTRA_MODULES)),
+               agent_listing("rcm_platform_master", SEED_MASTER_MODULES + EXTRA_MODULES, console=True)),
     "robot": ("rcm_platform_robot.zip", agent_listing("rcm_platform_robot", SEED_ROBOT_MODULES + EXTRA_MODULES)),
     "rcm_driver": ("rcm_driver.zip", with_dirs(SEED_RCM)),
     "robotics_msgs": ("robotics_msgs.zip", with_dirs(SEED_ROBOTICS_MSGS)),
     None: ("robotics.zip", agent_listing("rcm_platform_master", SEED_MASTER_MODULES + EXTRA_MODULES,
-                                         extra=["firos.zip", "rcm_driver.zip", "robotics_msgs.zip"])),
+                                         extra=["firos.zip", "rcm_driver.zip", "robotics_msgs.zip"],
+                                         console=True)),
 }
 
 
@@ -170,11 +177,13 @@ def test_robot_zip_runs_without_the_master_only_modules(tmp_path):
     assert result.stdout.splitlines()[0].startswith(str(root))
     assert "rcm_platform.rcmp_ext_connector" not in result.stdout
     assert "rcm_platform.rcmp_robotics_data" not in result.stdout
+    assert "rcm_platform.rcmp_console" not in result.stdout
 
 
 # --- the tool's rules, on a synthetic tree ---------------------------------------------------------------------
 def make_tree(base):
-    files = ["rcm_platform/" + m for m in SEED_MASTER_MODULES + EXTRA_MODULES] + SEED_AGENT_FILES
+    files = ["rcm_platform/" + m for m in SEED_MASTER_MODULES + EXTRA_MODULES + CONSOLE_MODULES] + SEED_AGENT_FILES
+    files += CONSOLE_FILES
     files += SEED_RCM + SEED_ROBOTICS_MSGS + SEED_FIROS_FILES
     files += ["firos/config/config.json", "firos/scripts/include/ros/topicHandler.py",
               "firos/scripts/include/__init__.py"]
@@ -268,6 +277,7 @@ def test_robot_zip_never_holds_master_only_modules_even_when_present(tmp_path, t
     listing = names(path)
     assert "rcm_platform_robot/rcm_platform/rcmp_ext_connector.py" not in listing
     assert "rcm_platform_robot/rcm_platform/rcmp_robotics_data.py" not in listing
+    assert not [n for n in listing if "rcmp_console" in n or "rcm_platform/console" in n]
 
 
 def test_rebuild_replaces_the_zip(tmp_path, tree):

@@ -257,8 +257,9 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     with open(BIN) as f:
         assert f.readline().strip() == "#!/usr/bin/python3"
     modules = sorted(n for n in os.listdir(LIB) if n.endswith(".py"))
-    assert modules == sorted(os.listdir(pkg / "rcm_platform"))
+    assert modules == sorted(n for n in os.listdir(pkg / "rcm_platform") if n.endswith(".py"))
     assert "rcmp_ext_connector.py" in modules and "rcmp_robotics_data.py" in modules
+    assert sorted(os.listdir(os.path.join(LIB, "console"))) == sorted(os.listdir(pkg / "rcm_platform" / "console"))
     config = open(os.path.join(HOME, ".init.cfg")).read()
     assert "inbound_open_ports=10100, 10101, 10102, 10103" in config
     assert f"ext_port={ext_port}" in config and f"ic_port={ic_port}" in config
@@ -275,6 +276,7 @@ def test_master_installation_seed_checks_and_uninstallation(tmp_path, slot):
     assert master_up(ext_port) == "<html><body>Welcome to the RCM platform node server!</body></html>"
     read = curl(f"http://127.0.0.1:{ext_port}/platform_instance/read")
     assert json.loads(read.stdout) == {"reason": [], "result": "OK"}
+    assert "<title>RCM platform console</title>" in curl(f"http://127.0.0.1:{ext_port}/console/").stdout
 
     # -- "List of Running Processes": one rcmp_n (one reactor serves the RDAPI and the agent protocol) ---------
     agents = agent_processes()
@@ -369,6 +371,7 @@ def test_robot_installed_next_to_the_master_pairs_with_it(tmp_path, slot):
          "--service-name", robot_service], env=user_env(user), cwd=robot_pkg)
     robot_modules = sorted(n for n in os.listdir(robot_paths["lib"] / "rcm_platform") if n.endswith(".py"))
     assert robot_modules == sorted(os.listdir(robot_pkg / "rcm_platform"))
+    assert not (robot_paths["lib"] / "rcm_platform" / "console").exists()
     assert "rcmp_ext_connector.py" not in robot_modules and "rcmp_robotics_data.py" not in robot_modules
     robot_bin = str(robot_paths["bin"] / "rcmp_n")
     status = service(robot_service, "status")

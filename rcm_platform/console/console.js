@@ -1,0 +1,511 @@
+/* The RCM platform console (CONTRACTS §9): plain JavaScript, no library, no other origin.
+ *
+ * State arrives pushed on one event stream (/console/api/events, Server-Sent Events read through fetch so that
+ * an RDAPI token can go in the Authorization header): a "snapshot" first, then "patch"es with what changed.
+ * Forms call the RDAPI itself and show its "reason" beside them. Everything users named is rendered with
+ * textContent / createElement, never innerHTML.
+ */
+"use strict";
+
+const state = { robots: [], servers: [], logics: {}, spaces: {}, seq: 0, at: 0, details: {} };
+const ui = { view: "overview", robot: null, topic: "", stream: null, topicStream: null, rowCache: new Map() };
+const TOKEN_KEY = "rcmp_console_token";
+
+// -- small DOM helpers ---------------------------------------------------------------------------------------
+function $(id) { return document.getElementById(id); }
+function el(tag, attrs, ...children) {
+  const node = document.createElement(tag);
+  for (const [key, value] of Object.entries(attrs || {})) {
+    if (value === null || value === undefined || value === false) continue;
+    if (key === "class") node.className = value;
+    else if (key === "text") node.textContent = String(value);
+    else node.setAttribute(key, value === true ? "" : String(value));
+  }
+  for (const child of children) {
+    if (child === null || child === undefined) continue;
+    node.appendChild(typeof child === "string" ? document.createTextNode(child) : child);
+  }
+  return node;
+}
+function badge(word, kind) { return el("span", { class: "state state-" + kind, text: word }); }
+function yesNo(value, yes, no) { return value ? badge(yes, "yes") : badge(no, "no"); }
+function stateBadge(s) { return badge(s || "unknown", ["running", "starting", "stopping", "exited", "failed"].includes(s) ? s : "no"); }
+function localTime(seconds) { return seconds ? new Date(seconds * 1000).toLocaleString() : ""; }
+function replaceChildren(node, children) {
+  while (node.firstChild) node.removeChild(node.firstChild);
+  for (const child of children) node.appendChild(child);
+}
+
+// -- RDAPI calls ---------------------------------------------------------------------------------------------
+function token() { try { return sessionStorage.getItem(TOKEN_KEY) || ""; } catch (e) { return ""; } }
+function headers(extra) {
+  const h = Object.assign({}, extra || {});
+  if (token()) h["Authorization"] = "Bearer " + token();
+  return h;
+}
+function askForToken(reason) {
+  $("token-box").hidden = false;
+  $("token-error").textContent = reason || "";
+  $("token-input").focus();
+}
+async function rdapi(path, body) {
+  const options = body === undefined ? { headers: headers() }
+    : { method: "POST", headers: headers({ "Content-Type": "application/json" }), body: JSON.stringify(body) };
+  let response;
+  try {
+    response = await fetch(path, options);
+  } catch (e) {
+    return { result: "ERROR", reason: "the master did not answer: " + e.message };
+  }
+  let answer;
+  try { answer = await response.json(); } catch (e) {
+    answer = { result: "ERROR", reason: "the master answered HTTP " + response.status + " without JSON" };
+  }
+  if (response.status === 401) askForToken(answer.reason);
+  return answer;
+}
+
+// -- the event stream ----------------------------------------------------------------------------------------
+function setLive(kind, text) {
+  const live = $("live");
+  live.className = "live live-" + kind;
+  live.textContent = text;
+}
+
+/* Read a Server-Sent Events response body: calls onEvent(name, data) per event; resolves when it ends. */
+async function readEvents(response, onEvent, isCurrent) {
+  const reader = response.body.getReader();
+  const decoder = new TextDecoder();
+  let buffer = "";
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done || !isCurrent()) { try { reader.cancel(); } catch (e) { /* already closed */ } return; }
+    buffer += decoder.decode(value, { stream: true });
+    let cut;
+    while ((cut = buffer.indexOf("\n\n")) >= 0) {
+      const block = buffer.slice(0, cut);
+      buffer = buffer.slice(cut + 2);
+      let name = "message";
+      const data = [];
+      for (const line of block.split("\n")) {
+        if (line.startsWith("event: ")) name = line.slice(7);
+        else if (line.startsWith("data: ")) data.push(line.slice(6));
+      }
+      if (data.length) onEvent(name, JSON.parse(data.join("\n")));
+    }
+  }
+}
+
+function openStream() {
+  const id = {};
+  ui.stream = id;
+  const detail = ui.view === "robot" && ui.robot ? "?ss_name=" + encodeURIComponent(ui.robot) : "";
+  const controller = new AbortController();
+  id.abort = () => controller.abort();
+  setLive("connecting", "connecting…");
+  fetch("/console/api/events" + detail, { headers: headers(), signal: controller.signal, cache: "no-store" })
+    .then(async (response) => {
+      if (response.status === 401) {
+        const answer = await response.json().catch(() => ({}));
+        setLive("down", "token needed");
+        askForToken(answer.reason);
+        return "token";
+      }
+      if (!response.ok) throw new Error("HTTP " + response.status);
+      setLive("ok", "live");
+      await readEvents(response, onEvent, () => ui.stream === id);
+      return "ended";
+    })
+    .catch((e) => (e.name === "AbortError" ? "aborted" : "error"))
+    .then((how) => {
+      if (ui.stream !== id || how === "token" || how === "aborted") return;
+      setLive("down", "reconnecting…");
+      setTimeout(() => { if (ui.stream === id) openStream(); }, 1000);
+    });
+}
+function restartStream() {
+  if (ui.stream && ui.stream.abort) ui.stream.abort();
+  ui.stream = null;
+  openStream();
+}
+
+function onEvent(name, data) {
+  if (name === "snapshot") {
+    Object.assign(state, { robots: data.robots, servers: data.servers, logics: data.logics, spaces: data.spaces });
+  } else if (name === "patch") {
+    if (data.robots) state.robots = data.robots;
+    if (data.servers) state.servers = data.servers;
+    for (const key of ["logics", "spaces"]) {
+      if (!data[key]) continue;
+      for (const gone of data[key].gone) delete state[key][gone];
+      Object.assign(state[key], data[key].changed);
+    }
+  } else if (name === "detail") {
+    state.details[data.ss_name] = data.detail;
+    renderRobot();
+    return;
+  } else {
+    return;
+  }
+  state.seq = data.seq;
+  state.at = data.at;
+  render();
+}
+
+// -- rendering -----------------------------------------------------------------------------------------------
+function render() {
+  const updated = $("updated");
+  updated.textContent = localTime(state.at);
+  updated.setAttribute("datetime", new Date(state.at * 1000).toISOString());
+  document.body.dataset.seq = String(state.seq);
+  renderRobots();
+  renderServers();
+  renderLogics();
+  renderRobot();
+  document.body.dataset.renderedAt = String(Date.now());
+}
+
+function robotRow(r) {
+  const link = el("a", { href: "#/robot/" + encodeURIComponent(r.pi_name), text: r.pi_name });
+  return el("tr", { "data-name": r.pi_name },
+    el("td", {}, link), el("td", { text: r.service_logic || "" }),
+    el("td", {}, yesNo(r.connected, "connected", "not connected")),
+    el("td", {}, yesNo(r.paired, "paired", "not paired")),
+    el("td", { text: r.server || "" }), el("td", { text: r.address || "" }));
+}
+
+function renderRobots() {
+  const filter = $("robots-filter").value.trim().toLowerCase();
+  const rows = [];
+  const seen = new Set();
+  for (const r of state.robots) {
+    seen.add(r.pi_name);
+    if (filter && !r.pi_name.toLowerCase().includes(filter)) continue;
+    const key = JSON.stringify(r);
+    let cached = ui.rowCache.get(r.pi_name);
+    if (!cached || cached.key !== key) {
+      cached = { key, row: robotRow(r) };
+      ui.rowCache.set(r.pi_name, cached);
+    }
+    rows.push(cached.row);
+  }
+  for (const name of Array.from(ui.rowCache.keys())) if (!seen.has(name)) ui.rowCache.delete(name);
+  replaceChildren($("robots").tBodies[0], rows);
+  const connected = state.robots.filter((r) => r.connected).length;
+  const paired = state.robots.filter((r) => r.paired).length;
+  $("robots-count").textContent = `(${state.robots.length} provisioned, ${connected} connected, ${paired} paired)`;
+  $("robots-empty").hidden = state.robots.length > 0;
+  replaceChildren($("robot-names"), state.robots.map((r) => el("option", { value: r.pi_name })));
+}
+
+function renderServers() {
+  $("servers-section").hidden = !state.servers || state.servers.length === 0;
+  replaceChildren($("servers").tBodies[0], (state.servers || []).map((s) => el("tr", { "data-name": s.pi_name },
+    el("td", { text: s.pi_name }), el("td", {}, yesNo(s.connected, "connected", "not connected")),
+    el("td", { text: s.address || "" }),
+    el("td", { text: (s.service_spaces || []).length + " / " + (s.max_service_spaces ?? "?") }))));
+}
+
+function itemText(kind, item) {
+  if (kind === "node") return `${item.sn_name}: rosrun ${item.sn_package} ${item.sn_type} ${item.sn_params || ""} (side ${item.sn_side})`;
+  return `${item.sl_name}: roslaunch ${item.sl_package} ${item.sl_file_launcher} ${item.sl_params || ""} (side ${item.sl_side})`;
+}
+
+function renderLogics() {
+  const names = Object.keys(state.logics);
+  $("logics-count").textContent = `(${names.length})`;
+  replaceChildren($("logic-names"), names.map((n) => el("option", { value: n })));
+  replaceChildren($("logics"), names.map((name) => {
+    const logic = state.logics[name];
+    const items = [...logic.sn_list.map((i) => el("li", { text: "node " + itemText("node", i) })),
+                   ...logic.sl_list.map((i) => el("li", { text: "launcher " + itemText("launcher", i) }))];
+    return el("div", { class: "logic", "data-name": name },
+      el("h3", {}, name, el("span", { class: "count", text: ` ROS master on the ${logic.ss_side === "R" ? "robot" : "server"} side` })),
+      items.length ? el("ul", {}, ...items) : el("p", { class: "empty", text: "no items" }));
+  }));
+}
+
+function renderRobot() {
+  if (ui.view !== "robot") return;
+  const name = ui.robot;
+  $("rv-name").textContent = name;
+  const robot = state.robots.find((r) => r.pi_name === name);
+  const space = state.spaces[name];
+  const summary = [];
+  const add = (term, value) => summary.push(el("dt", { text: term }), el("dd", {}, value));
+  if (!robot) add("provisioned", badge("not provisioned", "no"));
+  else {
+    add("service logic", robot.service_logic || "");
+    add("connected", yesNo(robot.connected, "connected", "not connected"));
+    add("paired", yesNo(robot.paired, "paired", "not paired"));
+    if (robot.server) add("server", robot.server);
+    if (robot.address) add("address", robot.address);
+  }
+  if (space) {
+    if (space.ros_master_uri) add("ROS master", space.ros_master_uri);
+    if (space.public_ip) add("public_ip", space.public_ip);
+    if (space.inbound_port) add("inbound_port", String(space.inbound_port));
+    if (space.reason) add("why not paired", el("span", { class: "error", text: space.reason }));
+  }
+  replaceChildren($("rv-summary"), summary);
+  $("rv-no-space").hidden = !!space;
+  const rows = [];
+  if (space) {
+    for (const l of space.r_launchers) rows.push(itemRow(l.sl_name, "launcher", l));
+    for (const n of space.r_nodes) rows.push(itemRow(n.sn_name, n.launcher ? "node of " + n.launcher : "node", n));
+  }
+  replaceChildren($("rv-items").tBodies[0], rows);
+  const detail = state.details[name];
+  const logs = [];
+  if (detail && space) {
+    for (const item of detail.items) {
+      const title = `${item.kind} ${item.name} on ${item.i_name}`;
+      logs.push(el("div", { class: "log", "data-item": item.name }, el("h4", { text: "log of " + title }),
+        item.tail !== undefined ? el("pre", { text: item.tail || "(no output yet)" })
+          : el("p", { class: "empty", text: `its log is on ${item.i_name}` })));
+    }
+  }
+  replaceChildren($("rv-logs"), logs);
+}
+
+function itemRow(name, kind, item) {
+  return el("tr", { "data-item": name },
+    el("td", { text: name }), el("td", { text: kind }), el("td", { text: item.i_name || "" }),
+    el("td", {}, stateBadge(item.state)), el("td", { class: "error", text: item.error || "" }));
+}
+
+// -- the live topic view -------------------------------------------------------------------------------------
+const plot = { samples: [], type: "", kind: "" };
+
+function stopTopic() {
+  if (ui.topicStream && ui.topicStream.abort) ui.topicStream.abort();
+  ui.topicStream = null;
+}
+
+function openTopic() {
+  stopTopic();
+  if (ui.view !== "robot") return;
+  const id = {};
+  ui.topicStream = id;
+  const controller = new AbortController();
+  id.abort = () => controller.abort();
+  plot.samples = [];
+  plot.kind = "";
+  drawPlot();
+  let url = "/console/api/topic?ss_name=" + encodeURIComponent(ui.robot);
+  if (ui.topic) url += "&topic=" + encodeURIComponent(ui.topic);
+  $("topic-status").textContent = ui.topic ? "waiting for " + ui.topic + "…" : "looking for topics…";
+  fetch(url, { headers: headers(), signal: controller.signal, cache: "no-store" })
+    .then(async (response) => {
+      if (!response.ok) {
+        const answer = await response.json().catch(() => ({}));
+        $("topic-status").textContent = answer.reason || ("HTTP " + response.status);
+        if (response.status === 401) askForToken(answer.reason);
+        return response.status === 404 ? "retry" : "stop";
+      }
+      await readEvents(response, onTopicEvent, () => ui.topicStream === id);
+      return "retry";
+    })
+    .catch((e) => (e.name === "AbortError" ? "stop" : "retry"))
+    .then((how) => {
+      if (how === "retry" && ui.topicStream === id) setTimeout(() => { if (ui.topicStream === id) openTopic(); }, 2000);
+    });
+}
+
+function onTopicEvent(name, data) {
+  if (name === "topics") {
+    const select = $("topic-select");
+    const options = [el("option", { value: "", text: "choose a topic…" })];
+    for (const [topic, type] of data.topics) options.push(el("option", { value: topic, text: `${topic} (${type})` }));
+    const current = ui.topic;
+    replaceChildren(select, options);
+    select.value = current;
+    if (!ui.topic) $("topic-status").textContent = `${data.topics.length} topic(s) in the service space`;
+  } else if (name === "samples") {
+    plot.type = data.type || "";
+    plot.samples = data.samples.slice();
+    drawPlot();
+  } else if (name === "sample") {
+    plot.type = data.type;
+    plot.samples.push(data.sample);
+    if (plot.samples.length > 600) plot.samples.splice(0, plot.samples.length - 600);
+    drawPlot();
+  } else if (name === "gone") {
+    $("topic-status").textContent = data.reason;
+  }
+}
+
+function drawPlot() {
+  const canvas = $("topic-canvas");
+  const text = $("topic-text");
+  const last = plot.samples[plot.samples.length - 1];
+  canvas.dataset.samples = String(plot.samples.length);
+  if (!last) { canvas.hidden = true; text.hidden = true; return; }
+  if (last.text !== undefined) {
+    canvas.hidden = true;
+    text.hidden = false;
+    text.textContent = last.text;
+  } else {
+    text.hidden = true;
+    canvas.hidden = false;
+    if (last.x !== undefined) drawTrail(canvas); else drawLine(canvas);
+  }
+  canvas.dataset.last = JSON.stringify(last);
+  $("topic-status").textContent = `${ui.topic} (${plot.type}): ${plot.samples.length} sample(s), last at ` +
+    new Date(last.t * 1000).toLocaleTimeString();
+}
+
+function frame(canvas, xs, ys) {
+  const ctx = canvas.getContext("2d");
+  const w = canvas.width, h = canvas.height, pad = 30;
+  ctx.clearRect(0, 0, w, h);
+  let x0 = Math.min(...xs), x1 = Math.max(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
+  if (x1 - x0 < 1e-9) { x0 -= 1; x1 += 1; }
+  if (y1 - y0 < 1e-9) { y0 -= 1; y1 += 1; }
+  const sx = (w - 2 * pad) / (x1 - x0), sy = (h - 2 * pad) / (y1 - y0);
+  ctx.fillStyle = "#5a6270";
+  ctx.font = "12px sans-serif";
+  ctx.fillText(y1.toFixed(2), 2, pad - 6);
+  ctx.fillText(y0.toFixed(2), 2, h - 4);
+  ctx.fillText(x1.toFixed(2), w - 60, h - 4);
+  return { ctx, px: (x) => pad + (x - x0) * sx, py: (y) => h - pad - (y - y0) * sy };
+}
+
+function drawTrail(canvas) {
+  const pts = plot.samples.filter((s) => s.x !== undefined);
+  const xs = pts.map((p) => p.x), ys = pts.map((p) => p.y);
+  // same scale on both axes, so a circle looks like one
+  const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 1);
+  const cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
+  const ratio = canvas.width / canvas.height;
+  const { ctx, px, py } = frame(canvas, [cx - span * ratio / 2, cx + span * ratio / 2], [cy - span / 2, cy + span / 2]);
+  ctx.strokeStyle = "#0a58ca";
+  ctx.lineWidth = 2;
+  ctx.beginPath();
+  pts.forEach((p, i) => (i ? ctx.lineTo(px(p.x), py(p.y)) : ctx.moveTo(px(p.x), py(p.y))));
+  ctx.stroke();
+  const last = pts[pts.length - 1];
+  ctx.fillStyle = "#c62828";
+  ctx.beginPath();
+  ctx.arc(px(last.x), py(last.y), 6, 0, 2 * Math.PI);
+  ctx.fill();
+  if (last.theta !== undefined) {
+    ctx.beginPath();
+    ctx.moveTo(px(last.x), py(last.y));
+    ctx.lineTo(px(last.x) + 16 * Math.cos(last.theta), py(last.y) - 16 * Math.sin(last.theta));
+    ctx.stroke();
+  }
+}
+
+function drawLine(canvas) {
+  const pts = plot.samples.filter((s) => s.value !== undefined);
+  const xs = pts.map((p, i) => i), ys = pts.map((p) => p.value);
+  const { ctx, px, py } = frame(canvas, xs, ys);
+  ctx.strokeStyle = "#0a58ca";
+  ctx.lineWidth = 2;
+  ctx.beginPath();
+  pts.forEach((p, i) => (i ? ctx.lineTo(px(i), py(p.value)) : ctx.moveTo(px(i), py(p.value))));
+  ctx.stroke();
+}
+
+// -- forms ---------------------------------------------------------------------------------------------------
+let itemCounter = 0;
+function addItemRow(kind) {
+  const prefix = kind === "node" ? "sn" : "sl";
+  const fields = kind === "node" ? ["sn_name", "sn_package", "sn_type", "sn_params"]
+    : ["sl_name", "sl_package", "sl_file_launcher", "sl_params"];
+  const n = ++itemCounter;
+  const row = el("div", { class: "item-row", "data-kind": kind });
+  for (const field of fields) {
+    const id = `item${n}-${field}`;
+    row.appendChild(el("label", { for: id }, field, el("input", { id, name: field, autocomplete: "off" })));
+  }
+  const sideId = `item${n}-${prefix}_side`;
+  row.appendChild(el("label", { for: sideId }, `${prefix}_side`,
+    el("select", { id: sideId, name: `${prefix}_side` }, el("option", { value: "S", text: "S (server)" }),
+      el("option", { value: "R", text: "R (robot)" }))));
+  const remove = el("button", { type: "button", class: "secondary", text: `Remove this ${kind}` });
+  remove.addEventListener("click", () => row.remove());
+  row.appendChild(remove);
+  $(kind === "node" ? "sn-rows" : "sl-rows").appendChild(row);
+  row.querySelector("input").focus();
+}
+
+function formBody(form) {
+  if (form.id === "provision-logic") {
+    const body = { slg_name: form.elements.slg_name.value.trim(), ss_side: form.elements.ss_side.value,
+                   sn_list: [], sl_list: [] };
+    for (const row of form.querySelectorAll(".item-row")) {
+      const item = {};
+      for (const input of row.querySelectorAll("input, select")) item[input.name] = input.value.trim();
+      body[row.dataset.kind === "node" ? "sn_list" : "sl_list"].push(item);
+    }
+    return body;
+  }
+  const body = {};
+  for (const input of form.querySelectorAll("input, select")) body[input.name] = input.value.trim();
+  return body;
+}
+
+async function submitForm(event) {
+  event.preventDefault();
+  const form = event.currentTarget;
+  const error = form.querySelector(".form-error");
+  const ok = form.querySelector(".form-ok");
+  error.textContent = "";
+  ok.textContent = "";
+  const button = form.querySelector("button[type=submit]");
+  button.disabled = true;
+  try {
+    const answer = await rdapi(form.dataset.path, formBody(form));
+    if (answer.result === "OK") {
+      ok.textContent = String(answer.reason);
+      if (form.id === "provision-logic") { replaceChildren($("sn-rows"), []); replaceChildren($("sl-rows"), []); }
+      form.reset();
+    } else {
+      error.textContent = String(answer.reason);
+    }
+  } finally {
+    button.disabled = false;
+  }
+}
+
+// -- navigation ----------------------------------------------------------------------------------------------
+function route() {
+  const match = location.hash.match(/^#\/robot\/(.+)$/);
+  const view = match ? "robot" : "overview";
+  const robot = match ? decodeURIComponent(match[1]) : null;
+  const changed = view !== ui.view || robot !== ui.robot;
+  ui.view = view;
+  ui.robot = robot;
+  $("overview").hidden = view !== "overview";
+  $("robot-view").hidden = view !== "robot";
+  if (changed || !ui.stream) {
+    ui.topic = "";
+    $("topic-select").value = "";
+    restartStream();
+    if (view === "robot") openTopic(); else stopTopic();
+  }
+  render();
+}
+
+function start() {
+  for (const form of document.querySelectorAll("form.rdapi-form")) form.addEventListener("submit", submitForm);
+  $("add-node").addEventListener("click", () => addItemRow("node"));
+  $("add-launcher").addEventListener("click", () => addItemRow("launcher"));
+  $("robots-filter").addEventListener("input", renderRobots);
+  $("topic-select").addEventListener("change", (e) => { ui.topic = e.target.value; openTopic(); });
+  $("topic-form").addEventListener("submit", (e) => e.preventDefault());
+  $("token-form").addEventListener("submit", (e) => {
+    e.preventDefault();
+    try { sessionStorage.setItem(TOKEN_KEY, $("token-input").value.trim()); } catch (err) { /* private mode */ }
+    $("token-input").value = "";
+    $("token-box").hidden = true;
+    restartStream();
+    if (ui.view === "robot") openTopic();
+  });
+  window.addEventListener("hashchange", route);
+  route();
+}
+
+document.addEventListener("DOMContentLoaded", start);

@@ -1,0 +1,852 @@
+"""The console: the platform in a browser at ``/console/`` on the master's RDAPI server (CONTRACTS §9).
+
+Owns the console's resources and its live data, nothing else:
+
+- the static files of ``rcm_platform/console/`` (a fixed list read at start, served read-only, never a path
+  built from the request);
+- the event stream ``/console/api/events`` (Server-Sent Events): a ``Console`` broadcaster is told by small
+  observer hooks that something may have changed (``RoboticsData.observers``: every committed write;
+  ``ProcessTable.observers``: every state transition of a child; ``ServiceSpaceManager.observers``: a space
+  appears, changes or goes). It coalesces them (``COALESCE`` seconds), rebuilds a snapshot with the code the
+  RDAPI reads use (``PlatformCommands.read``, ``RoboticsData.service_logic``, ``ServiceSpaceManager.describe``)
+  and pushes each stream only what differs from the last snapshot. A new stream gets the whole snapshot first.
+  Streams are bounded in number (``MAX_CLIENTS``, 503 beyond) and in buffered bytes (a client that does not
+  read is dropped), and get a heartbeat comment every ``HEARTBEAT`` seconds;
+- live topic views (``/console/api/topic``): the agent keeps no rospy. Per watched service space it starts one
+  small ROS node, this module run as ``python3 -m rcm_platform.rcmp_console watch`` under the master's process
+  table with the space's ``ROS_MASTER_URI``. The node connects to a loopback port the agent listens on, proves
+  with a one-time key that the agent started it, and hands back JSON lines: the space's topics, and for the
+  topics pages watch at most ``WATCH_RATE`` samples a second, each already reduced to a point, a number or a
+  bounded text. The node is stopped ``WATCH_GRACE`` seconds after the last page stops watching, or when the
+  space goes.
+"""
+
+import argparse
+import collections
+import json
+import logging
+import mimetypes
+import os
+import secrets
+import sys
+import time
+
+from twisted.application import service
+from twisted.internet import defer, protocol, task, threads
+from twisted.protocols.basic import LineReceiver
+from twisted.web import resource, server
+from zope.interface import implementer
+from twisted.internet.interfaces import IPushProducer
+
+log = logging.getLogger("rcm_platform.console")
+
+STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "console")
+COALESCE = 0.05          # seconds between the first change and the snapshot pushed for it
+HEARTBEAT = 15.0         # seconds between two comments on an idle stream
+MAX_CLIENTS = 64         # event streams at once (topic streams included)
+MAX_BUFFER = 1 << 20     # bytes queued for one stream that does not read before it is dropped
+TAIL_LINES = 12          # log lines per item in a space's detail
+DETAIL_REFRESH = 1.0     # seconds between two looks at the log tails of the spaces pages look at
+MAX_WATCHES = 8          # service spaces whose topics are watched at once
+MAX_TOPICS = 4           # topics one watched space streams at once
+WATCH_RATE = 10.0        # samples per second and topic at most
+WATCH_HISTORY = 300      # samples kept per topic for a page that starts watching
+WATCH_GRACE = 10.0       # seconds a watcher lives on after the last page stopped watching
+MAX_LINE = 64 * 1024     # bytes of one line from a watcher
+MAX_TEXT = 2000          # characters of a message shown as text
+POSE_TYPES = ("geometry_msgs/Pose2D", "geometry_msgs/Pose", "geometry_msgs/PoseStamped", "nav_msgs/Odometry",
+              "geometry_msgs/PoseWithCovarianceStamped", "geometry_msgs/Point", "geometry_msgs/PointStamped")
+
+
+def sse(event, payload):
+    """One Server-Sent Event: ``event:`` line and the payload as one JSON ``data:`` line."""
+    data = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+    return f"event: {event}\ndata: {data}\n\n".encode("utf-8")
+
+
+# -- one stream -------------------------------------------------------------------------------------------------
+
+@implementer(IPushProducer)
+class Stream:
+    """One open event stream: writes while the connection keeps up, queues up to ``max_buffer`` bytes while the
+    transport says it is full, and drops the client beyond that."""
+
+    def __init__(self, request, on_close, max_buffer=MAX_BUFFER):
+        self.request = request
+        self.max_buffer = max_buffer
+        self.paused = False
+        self.closed = False
+        self.pending = []
+        self.pending_bytes = 0
+        self._on_close = on_close
+        request.setResponseCode(200)
+        request.setHeader(b"Content-Type", b"text/event-stream; charset=utf-8")
+        request.setHeader(b"Cache-Control", b"no-cache, no-store")
+        request.setHeader(b"X-Accel-Buffering", b"no")
+        request.registerProducer(self, True)
+        request.notifyFinish().addBoth(self._finished)
+        request.write(b"retry: 1000\n\n")
+
+    def send(self, data):
+        if self.closed:
+            return
+        if self.paused:
+            self.pending.append(data)
+            self.pending_bytes += len(data)
+            if self.pending_bytes > self.max_buffer:
+                log.info("console: dropping a stream that does not read (%d bytes queued)", self.pending_bytes)
+                self.abort()
+            return
+        self.request.write(data)
+
+    def pauseProducing(self):
+        self.paused = True
+
+    def resumeProducing(self):
+        self.paused = False
+        pending, self.pending, self.pending_bytes = self.pending, [], 0
+        for data in pending:
+            self.send(data)
+
+    def stopProducing(self):
+        self._close()
+
+    def abort(self):
+        transport = getattr(self.request, "transport", None) or getattr(self.request.channel, "transport", None)
+        self._close()
+        if transport is not None and hasattr(transport, "abortConnection"):
+            transport.abortConnection()
+
+    def end(self):
+        """Finish the stream normally (the server stops, or what it showed is gone)."""
+        if not self.closed:
+            self._close()
+            try:
+                self.request.unregisterProducer()
+                self.request.finish()
+            except Exception:  # the connection went at the same moment
+                pass
+
+    def _finished(self, _):
+        self._close()
+
+    def _close(self):
+        if self.closed:
+            return
+        self.closed = True
+        self.pending = []
+        self.pending_bytes = 0
+        self._on_close(self)
+
+
+# -- the broadcaster ----------------------------------------------------------------------------------------
+
+class Console:
+    """The console's live state and its streams (master only). ``start()`` hooks it into the agent."""
+
+    def __init__(self, reactor, data, platform, spaces, table, describe=None, env=None, coalesce=COALESCE,
+                 heartbeat=HEARTBEAT, max_clients=MAX_CLIENTS, max_buffer=MAX_BUFFER, detail_refresh=DETAIL_REFRESH,
+                 watch_grace=WATCH_GRACE):
+        """``spaces``: the ServiceSpaceManager (its ``spaces`` and ``observers``); ``describe``: what answers
+        ``service_space/read`` (the master agent's ``describe``; default the manager's)."""
+        self.reactor = reactor
+        self.data = data
+        self.platform = platform
+        self.spaces = spaces
+        self.describe = describe or spaces.describe
+        self.table = table
+        self.env = env
+        self.coalesce = coalesce
+        self.heartbeat = heartbeat
+        self.max_clients = max_clients
+        self.max_buffer = max_buffer
+        self.detail_refresh = detail_refresh
+        self.watch_grace = watch_grace
+        self.streams = {}           # Stream -> ss_name it shows in detail, or None
+        self.snapshot = None        # {"robots", "servers", "logics", "spaces", "seq", "at"}
+        self.details = {}           # ss_name -> last detail pushed
+        self.watches = {}           # ss_name -> TopicWatch
+        self.seq = 0
+        self.running = False
+        self._call = None
+        self._building = False
+        self._again = False
+        self._data_seen = None
+        self._data_part = None      # (robots, servers, logics) of generation _data_seen
+        self._heartbeat = None
+        self._detail_loop = None
+        self._listener = None
+        self._waiting = []          # Deferreds of next_snapshot()
+
+    # -- hooks ------------------------------------------------------------------------------------------
+    def start(self):
+        self.running = True
+        self.data.observers.append(self._data_changed)
+        self.table.observers.append(self._process_changed)
+        if self.spaces is not None and hasattr(self.spaces, "observers"):
+            self.spaces.observers.append(self._space_changed)
+        self._heartbeat = task.LoopingCall(self._beat)
+        self._heartbeat.clock = self.reactor
+        self._heartbeat.start(self.heartbeat, now=False)
+        self._detail_loop = task.LoopingCall(self._refresh_details)
+        self._detail_loop.clock = self.reactor
+        self._detail_loop.start(self.detail_refresh, now=False)
+        self._listener = self.reactor.listenTCP(0, _WatcherFactory(self), interface="127.0.0.1")
+        self.changed()
+
+    @defer.inlineCallbacks
+    def stop(self):
+        self.running = False
+        for hooks, fn in ((self.data.observers, self._data_changed), (self.table.observers, self._process_changed),
+                          (getattr(self.spaces, "observers", []), self._space_changed)):
+            if fn in hooks:
+                hooks.remove(fn)
+        for loop in (self._heartbeat, self._detail_loop):
+            if loop is not None and loop.running:
+                loop.stop()
+        if self._call is not None and self._call.active():
+            self._call.cancel()
+        for stream in list(self.streams):
+            stream.end()
+        yield defer.gatherResults([w.stop() for w in list(self.watches.values())], consumeErrors=True)
+        if self._listener is not None:
+            yield self._listener.stopListening()
+            self._listener = None
+
+    def _data_changed(self, generation):
+        """RoboticsData observer: runs on the writing thread."""
+        self.reactor.callFromThread(self.changed)
+
+    def _process_changed(self, managed, old, new):
+        self.changed()
+        if managed.key.startswith("console/watch/") and new in ("exited", "failed"):
+            watch = self.watches.get(managed.key[len("console/watch/"):])
+            if watch is not None and watch.process is managed and not watch.stopping:
+                watch.failed(f"the topic watcher {managed.error or 'ended'}")
+
+    def _space_changed(self, ss_name):
+        self.changed()
+        watch = self.watches.get(ss_name)
+        if watch is not None and self.spaces.spaces.get(ss_name) is None:
+            watch.space_gone()
+
+    def changed(self):
+        """Something may have changed: rebuild and push within ``coalesce`` seconds (once for many changes)."""
+        if not self.running:
+            return
+        if self._building:
+            self._again = True
+        elif self._call is None:
+            self._call = self.reactor.callLater(self.coalesce, self._rebuild)
+
+    # -- snapshots --------------------------------------------------------------------------------------
+    def _read_data(self):
+        """On a thread: the robots' addresses, the servers and every service logic, from RoboticsData."""
+        logics = {}
+        for name in self.data.service_logic_names():
+            logic = self.data.service_logic(name)
+            if logic is not None:
+                logics[name] = logic
+        addresses = {}
+        for row in self.data.platform_instances():
+            one = self.data.platform_instance(row["pi_name"])
+            if one is not None:
+                addresses[row["pi_name"]] = one.get("address")
+        return logics, addresses
+
+    @defer.inlineCallbacks
+    def _rebuild(self):
+        self._call = None
+        self._building = True
+        try:
+            generation = self.data.generation
+            if generation != self._data_seen:
+                robots = yield self.platform.read()
+                servers = yield self._servers()
+                logics, addresses = yield threads.deferToThread(self._read_data)
+                robots = [dict(row, address=addresses.get(row["pi_name"])) for row in robots]
+                self._data_part = (robots, servers, logics)
+                self._data_seen = generation
+            robots, servers, logics = self._data_part
+            spaces = {}
+            for name in sorted(getattr(self.spaces, "spaces", {}) or {}):
+                described = self.describe(name)
+                if described is not None:
+                    spaces[name] = described
+            self._publish({"robots": robots, "servers": servers, "logics": logics, "spaces": spaces})
+        except Exception:
+            log.exception("console: cannot build a snapshot")
+        finally:
+            self._building = False
+            if self._again:
+                self._again = False
+                self.changed()
+
+    def _servers(self):
+        """The servers' rows (CONTRACTS §8) where the RDAPI has them; [] where it does not."""
+        try:
+            d = self.platform.read(pi_type="S")
+        except TypeError:
+            return defer.succeed([])
+        d.addErrback(lambda failure: [])
+        return d
+
+    def _publish(self, new):
+        old = self.snapshot
+        self.seq += 1
+        new["seq"] = self.seq
+        new["at"] = time.time()
+        self.snapshot = new
+        waiting, self._waiting = self._waiting, []
+        for d in waiting:
+            d.callback(new)
+        if old is None:
+            event = sse("snapshot", new)
+            for stream in list(self.streams):
+                stream.send(event)
+            return
+        patch = {}
+        for key in ("robots", "servers"):
+            if new[key] != old[key]:
+                patch[key] = new[key]
+        for key in ("logics", "spaces"):
+            changed = {n: v for n, v in new[key].items() if old[key].get(n) != v}
+            gone = sorted(n for n in old[key] if n not in new[key])
+            if changed or gone:
+                patch[key] = {"changed": changed, "gone": gone}
+        if not patch:
+            return
+        patch["seq"] = new["seq"]
+        patch["at"] = new["at"]
+        event = sse("patch", patch)
+        for stream in list(self.streams):
+            stream.send(event)
+        if "spaces" in patch:
+            self._refresh_details()
+
+    def next_snapshot(self):
+        """A Deferred firing with the next snapshot published (tests and the benchmark)."""
+        d = defer.Deferred()
+        self._waiting.append(d)
+        return d
+
+    # -- details: log tails of the spaces pages look at -------------------------------------------------
+    def detail(self, ss_name):
+        """Every item of ``ss_name`` run by this agent with its log tail; items run elsewhere say where."""
+        space = getattr(self.spaces, "spaces", {}).get(ss_name)
+        if space is None:
+            return None
+        items = []
+        for item in space.items:
+            entry = {"kind": item.kind, "name": item.name, "i_name": item.i_name, "side": item.side}
+            process = getattr(item, "process", None)
+            if process is not None:
+                entry["tail"] = process.tail(TAIL_LINES)
+                entry["log"] = os.path.basename(process.log_path)
+            items.append(entry)
+        return {"ss_name": ss_name, "items": items}
+
+    def _refresh_details(self):
+        watched = {name for name in self.streams.values() if name}
+        for name in list(self.details):
+            if name not in watched:
+                del self.details[name]
+        for name in watched:
+            detail = self.detail(name)
+            if detail != self.details.get(name):
+                self.details[name] = detail
+                self._send_detail(name, detail)
+
+    def _send_detail(self, name, detail):
+        event = sse("detail", {"ss_name": name, "detail": detail})
+        for stream, shown in list(self.streams.items()):
+            if shown == name:
+                stream.send(event)
+
+    def _beat(self):
+        for stream in list(self.streams):
+            stream.send(b": heartbeat\n\n")
+
+    # -- streams ----------------------------------------------------------------------------------------
+    def full(self):
+        return len(self.streams) + sum(len(w.streams) for w in self.watches.values()) >= self.max_clients
+
+    def open_stream(self, request, detail=None):
+        """Start an event stream on ``request``: the current snapshot first (or as soon as there is one)."""
+        stream = Stream(request, self._stream_closed, self.max_buffer)
+        self.streams[stream] = detail
+        if self.snapshot is not None:
+            stream.send(sse("snapshot", self.snapshot))
+        else:
+            self.changed()
+        if detail:
+            d = self.detail(detail)
+            self.details[detail] = d
+            stream.send(sse("detail", {"ss_name": detail, "detail": d}))
+        return stream
+
+    def _stream_closed(self, stream):
+        self.streams.pop(stream, None)
+
+    # -- topics -----------------------------------------------------------------------------------------
+    def watch(self, ss_name):
+        """The TopicWatch of ``ss_name`` (started if needed), or None when the space has no ROS master yet."""
+        watch = self.watches.get(ss_name)
+        if watch is not None and not watch.stopping:
+            return watch
+        space = getattr(self.spaces, "spaces", {}).get(ss_name)
+        if space is None or not space.ros_master_uri:
+            return None
+        if len([w for w in self.watches.values() if not w.stopping]) >= MAX_WATCHES:
+            raise WatchLimit(f"the console already watches {MAX_WATCHES} service spaces; close a topic view first")
+        old = self.table.get(f"console/watch/{ss_name}")
+        if old is not None and old.state in ("starting", "running", "stopping"):
+            raise WatchLimit(f"the topic watcher of '{ss_name}' is still stopping; try again in a moment")
+        watch = TopicWatch(self, ss_name, space.ros_master_uri, getattr(self.spaces, "address", None))
+        self.watches[ss_name] = watch
+        watch.start(self._listener.getHost().port)
+        return watch
+
+
+class ConsoleService(service.Service):
+    """Starts the console with the agent and stops its streams and watchers with it."""
+
+    name = "console"
+
+    def __init__(self, console):
+        self.console = console
+
+    def startService(self):
+        super().startService()
+        self.console.start()
+
+    def stopService(self):
+        super().stopService()
+        return self.console.stop()
+
+
+class WatchLimit(Exception):
+    """Too many service spaces watched at once."""
+
+
+# -- topic watching: the agent's side -----------------------------------------------------------------------
+
+class TopicWatch:
+    """One watched service space: its watcher node, its topics, recent samples, and the pages watching."""
+
+    def __init__(self, console, ss_name, ros_master_uri, address):
+        self.console = console
+        self.ss_name = ss_name
+        self.ros_master_uri = ros_master_uri
+        self.address = address or "127.0.0.1"
+        self.key = secrets.token_hex(16)
+        self.process = None
+        self.link = None
+        self.topics = []
+        self.samples = {}           # topic -> deque of samples
+        self.types = {}
+        self.streams = {}           # Stream -> topic it shows (or None)
+        self.stopping = False
+        self._grace = None
+        self._sent_watch = None
+
+    def start(self, port):
+        from .rcmp_command import child_env
+        package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+        env = child_env(self.console.env, self.ros_master_uri, self.address,
+                                os.path.join(self.console.table.log_dir, "ros"))
+        env["PYTHONPATH"] = package_root + (":" + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+        argv = ["/usr/bin/python3", "-m", "rcm_platform.rcmp_console", "watch", "--port", str(port),
+                "--name", self.ss_name]
+        env["RCMP_CONSOLE_KEY"] = self.key   # not on the command line, where any local user could read it
+        self.process = self.console.table.spawn(f"console/watch/{self.ss_name}", argv, env,
+                                                f"console-watch-{self.ss_name}")
+        log.info("console: watching the topics of service space %s", self.ss_name)
+
+    def open_stream(self, request, topic):
+        stream = Stream(request, self._stream_closed, self.console.max_buffer)
+        self.streams[stream] = topic
+        if self._grace is not None and self._grace.active():
+            self._grace.cancel()
+        self._grace = None
+        stream.send(sse("topics", {"ss_name": self.ss_name, "topics": self.topics}))
+        if topic:
+            history = list(self.samples.get(topic, ()))
+            stream.send(sse("samples", {"topic": topic, "type": self.types.get(topic), "samples": history}))
+        self._tell_watcher()
+        return stream
+
+    def _stream_closed(self, stream):
+        self.streams.pop(stream, None)
+        self._tell_watcher()
+        if not self.streams and not self.stopping and self.console.running:
+            self._grace = self.console.reactor.callLater(self.console.watch_grace, self.stop)
+
+    def wanted(self):
+        return sorted({t for t in self.streams.values() if t})[:MAX_TOPICS]
+
+    def _tell_watcher(self):
+        wanted = self.wanted()
+        if self.link is not None and wanted != self._sent_watch:
+            self._sent_watch = wanted
+            self.link.sendLine(json.dumps({"watch": wanted}).encode())
+        for topic in list(self.samples):
+            if topic not in wanted:
+                del self.samples[topic]
+
+    def linked(self, link):
+        self.link = link
+        self._sent_watch = None
+        self._tell_watcher()
+
+    def topics_received(self, topics):
+        self.topics = topics
+        event = sse("topics", {"ss_name": self.ss_name, "topics": topics})
+        for stream in list(self.streams):
+            stream.send(event)
+
+    def sample_received(self, topic, type_name, sample):
+        if topic not in self.wanted():
+            return
+        self.types[topic] = type_name
+        self.samples.setdefault(topic, collections.deque(maxlen=WATCH_HISTORY)).append(sample)
+        event = sse("sample", {"topic": topic, "type": type_name, "sample": sample})
+        for stream, shown in list(self.streams.items()):
+            if shown == topic:
+                stream.send(event)
+
+    def space_gone(self):
+        self.failed("the service space was torn down")
+
+    def failed(self, reason):
+        event = sse("gone", {"ss_name": self.ss_name, "reason": reason})
+        for stream in list(self.streams):
+            stream.send(event)
+            stream.end()
+        self.stop()
+
+    def stop(self):
+        if self._grace is not None and self._grace.active():
+            self._grace.cancel()
+        self._grace = None
+        self.stopping = True
+        if self.console.watches.get(self.ss_name) is self:
+            del self.console.watches[self.ss_name]
+        for stream in list(self.streams):
+            stream.end()
+        if self.link is not None:
+            self.link.transport.loseConnection()
+        key = f"console/watch/{self.ss_name}"
+        d = self.console.table.stop(key)
+        d.addCallback(lambda _: self.console.table.forget(key))
+        log.info("console: stopped watching the topics of service space %s", self.ss_name)
+        return d
+
+
+class _WatcherLink(LineReceiver):
+    """The agent's end of one watcher's loopback connection: a hello with the key, then JSON lines."""
+
+    delimiter = b"\n"
+    MAX_LENGTH = MAX_LINE
+
+    def __init__(self, console):
+        self.console = console
+        self.watch = None
+
+    def connectionMade(self):
+        self._hello_timeout = self.console.reactor.callLater(10.0, self.transport.loseConnection)
+
+    def lineReceived(self, line):
+        try:
+            message = json.loads(line.decode("utf-8"))
+            if not isinstance(message, dict):
+                raise ValueError("not an object")
+        except ValueError:
+            self.transport.loseConnection()
+            return
+        if self.watch is None:
+            self._hello(message)
+            return
+        if "topics" in message and isinstance(message["topics"], list):
+            topics = [[str(t[0])[:256], str(t[1])[:256]] for t in message["topics"][:1000]
+                      if isinstance(t, list) and len(t) == 2]
+            self.watch.topics_received(topics)
+        elif isinstance(message.get("topic"), str) and isinstance(message.get("sample"), dict):
+            self.watch.sample_received(message["topic"], str(message.get("type"))[:256], message["sample"])
+
+    def _hello(self, message):
+        if self._hello_timeout.active():
+            self._hello_timeout.cancel()
+        watch = self.console.watches.get(str(message.get("name")))
+        if watch is None or watch.stopping or not secrets.compare_digest(str(message.get("key")), watch.key):
+            log.warning("console: a loopback connection without a valid watcher key was closed")
+            self.transport.loseConnection()
+            return
+        self.watch = watch
+        watch.linked(self)
+
+    def lineLengthExceeded(self, line):
+        self.transport.loseConnection()
+
+    def connectionLost(self, reason=protocol.connectionDone):
+        if self._hello_timeout.active():
+            self._hello_timeout.cancel()
+        if self.watch is not None and self.watch.link is self:
+            self.watch.link = None
+
+
+class _WatcherFactory(protocol.Factory):
+    noisy = False
+
+    def __init__(self, console):
+        self.console = console
+        self.open = 0
+
+    def buildProtocol(self, addr):
+        if self.open >= MAX_WATCHES * 2:
+            return None
+        link = _WatcherLink(self.console)
+        link.factory = self
+        self.open += 1
+        lost = link.connectionLost
+
+        def connection_lost(reason=protocol.connectionDone):
+            self.open -= 1
+            lost(reason)
+        link.connectionLost = connection_lost
+        return link
+
+
+# -- web resources ------------------------------------------------------------------------------------------
+
+def _json_error(request, status, reason):
+    request.setResponseCode(status)
+    request.setHeader(b"Content-Type", b"application/json")
+    return json.dumps({"result": "ERROR", "reason": reason}, sort_keys=True).encode("utf-8")
+
+
+def _one_arg(request, name):
+    values = (request.args or {}).get(name.encode())
+    if not values:
+        return None
+    try:
+        return values[0].decode("utf-8")
+    except UnicodeDecodeError:
+        return ""
+
+
+class ConsoleResource(resource.Resource):
+    """``/console/...``: static files and the console's API. Everything below /console/ comes here."""
+
+    isLeaf = True
+    SECURITY_HEADERS = (
+        (b"Content-Security-Policy", b"default-src 'self'; img-src 'self' data:; style-src 'self'; "
+                                     b"script-src 'self'; connect-src 'self'; frame-ancestors 'none'; "
+                                     b"base-uri 'none'; form-action 'none'"),
+        (b"X-Content-Type-Options", b"nosniff"),
+        (b"Referrer-Policy", b"no-referrer"),
+    )
+
+    def __init__(self, console, static_dir=STATIC_DIR):
+        super().__init__()
+        self.console = console
+        self.files = {}
+        for name in sorted(os.listdir(static_dir)):
+            path = os.path.join(static_dir, name)
+            if os.path.isfile(path) and not name.startswith("."):
+                with open(path, "rb") as f:
+                    kind = mimetypes.guess_type(name)[0] or "application/octet-stream"
+                    if kind.startswith("text/") or kind in ("application/javascript",):
+                        kind += "; charset=utf-8"
+                    self.files[name] = (f.read(), kind.encode())
+
+    def render(self, request):
+        from .rcmp_command import validate_name, CommandError
+        path = request.path.decode("latin-1")
+        for name, value in self.SECURITY_HEADERS:
+            request.setHeader(name, value)
+        if path == "/console":
+            request.setResponseCode(301)
+            request.setHeader(b"Location", b"/console/")
+            return b""
+        rest = path[len("/console/"):]
+        method = request.method.decode("latin-1")
+        if not rest.startswith("api/"):
+            name = rest or "index.html"
+            if method not in ("GET", "HEAD"):
+                request.setHeader(b"Allow", b"GET, HEAD")
+                return _json_error(request, 405, f"{path} takes GET only")
+            found = self.files.get(name)
+            if found is None:
+                return _json_error(request, 404, f"there is no console file {path!r}")
+            request.setHeader(b"Content-Type", found[1])
+            request.setHeader(b"Cache-Control", b"no-cache")
+            return found[0]
+        if method != "GET":
+            request.setHeader(b"Allow", b"GET")
+            return _json_error(request, 405, f"{path} takes GET only")
+        if self.console.full():
+            return _json_error(request, 503, f"the console already serves {self.console.max_clients} streams; "
+                                             f"try again later")
+        try:
+            if rest == "api/events":
+                detail = _one_arg(request, "ss_name")
+                if detail is not None:
+                    validate_name(detail, "ss_name")
+                self.console.open_stream(request, detail)
+                return server.NOT_DONE_YET
+            if rest == "api/topic":
+                ss_name = validate_name(_one_arg(request, "ss_name"), "ss_name")
+                topic = _one_arg(request, "topic")
+                if topic is not None and (not topic.startswith("/") or len(topic) > 256
+                                          or any(c.isspace() for c in topic)):
+                    return _json_error(request, 400, "'topic' must be a ROS topic name such as /pose")
+                try:
+                    watch = self.console.watch(ss_name)
+                except WatchLimit as exc:
+                    return _json_error(request, 503, str(exc))
+                if watch is None:
+                    return _json_error(request, 404, f"there is no running service space named '{ss_name}'")
+                watch.open_stream(request, topic)
+                return server.NOT_DONE_YET
+        except CommandError as exc:
+            return _json_error(request, exc.status, str(exc))
+        return _json_error(request, 404, f"unknown console call {path!r}")
+
+
+# -- topic watching: the watcher node (a child process; the only place rospy is imported) -------------------
+
+def sample_of(type_name, msg):
+    """What a page draws of one message: a point, a number or text (bounded)."""
+    point = None
+    if type_name == "geometry_msgs/Pose2D":
+        return {"x": float(msg.x), "y": float(msg.y), "theta": float(msg.theta)}
+    if type_name == "geometry_msgs/Pose":
+        point = msg.position
+    elif type_name == "geometry_msgs/PoseStamped":
+        point = msg.pose.position
+    elif type_name in ("nav_msgs/Odometry", "geometry_msgs/PoseWithCovarianceStamped"):
+        point = msg.pose.pose.position
+    elif type_name == "geometry_msgs/Point":
+        point = msg
+    elif type_name == "geometry_msgs/PointStamped":
+        point = msg.point
+    if point is not None:
+        return {"x": float(point.x), "y": float(point.y)}
+    data = getattr(msg, "data", None)
+    if isinstance(data, (int, float)) and not isinstance(data, bool) and len(getattr(msg, "__slots__", ())) == 1:
+        return {"value": float(data)}
+    return {"text": str(msg)[:MAX_TEXT]}
+
+
+def watch_main(argv):
+    """The watcher node: connect to the agent, subscribe to what it asks, send topics and samples."""
+    import socket
+    import signal
+    import threading
+
+    parser = argparse.ArgumentParser(prog="rcmp_console watch")
+    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--name", required=True)
+    args = parser.parse_args(argv)
+    key = os.environ.pop("RCMP_CONSOLE_KEY", "")
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+
+    sock = socket.create_connection(("127.0.0.1", args.port), timeout=10)
+    sock.settimeout(None)
+    out = sock.makefile("wb")
+    lock = threading.Lock()
+
+    def send(message):
+        data = json.dumps(message, separators=(",", ":")).encode() + b"\n"
+        with lock:
+            out.write(data)
+            out.flush()
+
+    send({"name": args.name, "key": key})
+    wanted = {"topics": []}
+
+    def read_commands():
+        try:
+            for line in sock.makefile("rb"):
+                try:
+                    message = json.loads(line)
+                except ValueError:
+                    continue
+                if isinstance(message, dict) and isinstance(message.get("watch"), list):
+                    wanted["topics"] = [t for t in message["watch"] if isinstance(t, str)][:MAX_TOPICS]
+        finally:
+            stop.set()
+    threading.Thread(target=read_commands, daemon=True).start()
+
+    import rospy
+    import roslib.message
+    rospy.init_node("rcmp_console_watch", anonymous=True, disable_signals=True, log_level=rospy.WARN)
+    latest = {}
+    subscribers = {}
+    last_topics = None
+    next_topics = 0.0
+    period = 1.0 / WATCH_RATE
+
+    def subscribe(topic, type_name):
+        cls = roslib.message.get_message_class(type_name)
+        if cls is None:
+            return None
+
+        def got(msg):
+            try:
+                latest[topic] = (type_name, sample_of(type_name, msg))
+            except Exception as exc:  # a message that cannot be shown: say so instead of nothing
+                latest[topic] = (type_name, {"text": f"cannot show this message: {exc}"[:MAX_TEXT]})
+        return rospy.Subscriber(topic, cls, got, queue_size=1)
+
+    try:
+        while not stop.is_set() and not rospy.is_shutdown():
+            now = time.monotonic()
+            if now >= next_topics:
+                next_topics = now + 1.0
+                try:
+                    topics = sorted([t, ty] for t, ty in rospy.get_published_topics())
+                except Exception:
+                    topics = last_topics or []
+                if topics != last_topics:
+                    last_topics = topics
+                    send({"topics": topics})
+            types = dict(last_topics or [])
+            for topic in list(subscribers):
+                if topic not in wanted["topics"]:
+                    subscribers.pop(topic).unregister()
+                    latest.pop(topic, None)
+            for topic in wanted["topics"]:
+                if topic not in subscribers and topic in types:
+                    subscriber = subscribe(topic, types[topic])
+                    if subscriber is not None:
+                        subscribers[topic] = subscriber
+            for topic in list(latest):
+                type_name, sample = latest.pop(topic)
+                sample["t"] = time.time()
+                send({"topic": topic, "type": type_name, "sample": sample})
+            stop.wait(period)
+    except (BrokenPipeError, ConnectionError):
+        pass
+    finally:
+        rospy.signal_shutdown("the console stopped watching")
+        try:
+            sock.close()
+        except OSError:
+            pass
+    return 0
+
+
+def main(argv=None):
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] != ["watch"]:
+        sys.stderr.write("usage: python3 -m rcm_platform.rcmp_console watch --port PORT --name SS_NAME\n")
+        return 2
+    return watch_main(argv[1:])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,242 @@
+"""The console's event stream (rcmp_console.Console) with Twisted's test tools: real RoboticsData (SQLite), the
+RDAPI's own PlatformCommands, a real ProcessTable with real child processes, requests from
+``twisted.web.test.requesthelper`` and the trial reactor. The service spaces are a small stand-in with the
+manager's interface (``spaces``, ``describe``, ``observers``), whose item states are the real children's."""
+
+import json
+import os
+import shutil
+import tempfile
+
+from twisted.internet import defer, reactor
+from twisted.trial import unittest
+from twisted.web.test.requesthelper import DummyRequest
+
+from rcm_platform import rcmp_console, rcmp_ms
+from rcm_platform.rcmp_platform_command import PlatformCommands
+from rcm_platform.rcmp_robotics_data import RoboticsData
+from tests.support.polling import until_deferred
+
+
+class StreamRequest(DummyRequest):
+    """A DummyRequest that accepts a push producer (DummyRequest only drives pull producers) and can be paused."""
+
+    def __init__(self, path=b"/console/api/events", args=None):
+        super().__init__([])
+        self.path = path
+        self.uri = path
+        self.args = args or {}
+        self.producer = None
+        self.aborted = False
+        self.transport = self
+
+    def registerProducer(self, producer, streaming):
+        self.producer = producer
+
+    def unregisterProducer(self):
+        self.producer = None
+
+    def abortConnection(self):
+        self.aborted = True
+
+    def events(self):
+        """[(event name, decoded data)] written so far; comments (heartbeats) as ("comment", text)."""
+        found = []
+        for block in b"".join(self.written).decode().split("\n\n"):
+            if block.startswith(":"):
+                found.append(("comment", block[1:].strip()))
+                continue
+            lines = dict(line.split(": ", 1) for line in block.splitlines() if ": " in line)
+            if "event" in lines:
+                found.append((lines["event"], json.loads(lines["data"])))
+        return found
+
+    def last(self, name):
+        matching = [data for event, data in self.events() if event == name]
+        return matching[-1] if matching else None
+
+
+class FakeItem:
+    def __init__(self, kind, name, process):
+        self.kind, self.name, self.process, self.i_name, self.side = kind, name, process, "master", "S"
+
+
+class FakeSpace:
+    def __init__(self, name, items):
+        self.name, self.items, self.ros_master_uri = name, items, None
+
+
+class StandInSpaces:
+    """What the console needs of a ServiceSpaceManager."""
+
+    def __init__(self):
+        self.spaces = {}
+        self.observers = []
+
+    def add(self, space):
+        self.spaces[space.name] = space
+        self._tell(space.name)
+
+    def remove(self, name):
+        del self.spaces[name]
+        self._tell(name)
+
+    def _tell(self, name):
+        for observer in list(self.observers):
+            observer(name)
+
+    def describe(self, ss_name):
+        space = self.spaces.get(ss_name)
+        if space is None:
+            return None
+        nodes = []
+        for item in space.items:
+            entry = {"sn_name": item.name, "i_name": item.i_name, "state": item.process.state}
+            if item.process.error:
+                entry["error"] = item.process.error
+            nodes.append(entry)
+        return {"r_nodes": nodes, "r_launchers": [], "paired": all(n["state"] == "running" for n in nodes)}
+
+
+class ConsoleStreamTest(unittest.TestCase):
+
+    def setUp(self):
+        tmp = tempfile.mkdtemp(prefix="console-stream-")
+        self.addCleanup(shutil.rmtree, tmp, True)
+        self.data = RoboticsData(os.path.join(tmp, "robotics_data.db"))
+        self.addCleanup(self.data.close)
+        self.table = rcmp_ms.ProcessTable(reactor, os.path.join(tmp, "log"), settle_time=0.2,
+                                          stop_timeouts=(1.0, 1.0))
+        self.addCleanup(self.table.stop_all)
+        self.spaces = StandInSpaces()
+        self.console = rcmp_console.Console(reactor, self.data, PlatformCommands(self.data), self.spaces,
+                                            self.table, coalesce=0.01, heartbeat=0.2, max_clients=3,
+                                            max_buffer=4096)
+        self.console.start()
+        self.addCleanup(self.console.stop)
+        self.resource = rcmp_console.ConsoleResource(self.console)
+
+    def open(self, args=None):
+        request = StreamRequest(args=args)
+        result = self.resource.render(request)
+        return request, result
+
+    def wait_event(self, request, predicate, message):
+        def found():
+            return any(predicate(name, data) for name, data in request.events())
+        return until_deferred(found, timeout=5.0, message=message)
+
+    @defer.inlineCallbacks
+    def test_a_new_stream_gets_the_whole_state_first(self):
+        self.data.provision_platform_instance("robot1", "empty")
+        yield self.console.next_snapshot()
+        request, result = self.open()
+        self.assertEqual(result, rcmp_console.server.NOT_DONE_YET)
+        self.assertEqual(request.responseHeaders.getRawHeaders(b"content-type"),
+                         [b"text/event-stream; charset=utf-8"])
+        name, snapshot = [e for e in request.events() if e[0] != "comment"][0]
+        self.assertEqual(name, "snapshot")
+        self.assertEqual(snapshot["robots"], [{"pi_name": "robot1", "service_logic": "empty", "connected": False,
+                                               "paired": False, "address": None}])
+        self.assertEqual(sorted(snapshot["logics"]), ["empty", "fiware_base"])
+        self.assertEqual(snapshot["spaces"], {})
+
+    @defer.inlineCallbacks
+    def test_connect_and_pair_are_pushed_as_patches_of_the_robots(self):
+        self.data.provision_platform_instance("robot1", "empty")
+        yield self.console.next_snapshot()
+        request, _ = self.open()
+        self.data.set_connected("robot1", "203.0.113.7")   # what the master's hello handler writes
+        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots", [{}])[0].get("connected"),
+                              "the connection to be pushed")
+        patch = request.last("patch")
+        self.assertEqual(patch["robots"], [{"pi_name": "robot1", "service_logic": "empty", "connected": True,
+                                            "paired": False, "address": "203.0.113.7"}])
+        self.assertNotIn("logics", patch)      # only what changed
+        self.data.set_paired("robot1", True)
+        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots", [{}])[0].get("paired"),
+                              "the pairing to be pushed")
+        self.data.set_disconnected("robot1")
+        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots") == [
+            {"pi_name": "robot1", "service_logic": "empty", "connected": False, "paired": False,
+             "address": "203.0.113.7"}], "the disconnection to be pushed")
+
+    @defer.inlineCallbacks
+    def test_an_item_that_exits_is_pushed_with_its_error_and_the_teardown_removes_the_space(self):
+        yield self.console.next_snapshot()
+        request, _ = self.open()
+        process = self.table.spawn("ss/robot1/node/crash", ["/bin/sh", "-c", "echo cannot open the lidar >&2; "
+                                                            "exit 3"], dict(os.environ), "robot1-crash")
+        self.spaces.add(FakeSpace("robot1", [FakeItem("node", "crash", process)]))
+
+        def crashed(name, data):
+            if name != "patch":
+                return False
+            nodes = (data.get("spaces") or {}).get("changed", {}).get("robot1", {}).get("r_nodes", [])
+            return name == "patch" and nodes and nodes[0]["state"] == "failed"
+        yield self.wait_event(request, crashed, "the item's failure to be pushed")
+        node = request.last("patch")["spaces"]["changed"]["robot1"]["r_nodes"][0]
+        self.assertIn("cannot open the lidar", node["error"])
+        self.assertIn("status 3", node["error"])
+        self.spaces.remove("robot1")
+        yield self.wait_event(request, lambda n, d: n == "patch" and (d.get("spaces") or {}).get("gone") == [
+            "robot1"], "the teardown to be pushed")
+
+    @defer.inlineCallbacks
+    def test_a_stream_with_ss_name_gets_the_items_log_tails(self):
+        process = self.table.spawn("ss/robot2/node/talk", ["/bin/sh", "-c", "echo hello from the talker; "
+                                                           "sleep 30"], dict(os.environ), "robot2-talk")
+        self.spaces.add(FakeSpace("robot2", [FakeItem("node", "talk", process)]))
+        request, _ = self.open(args={b"ss_name": [b"robot2"]})
+
+        def tail_seen(name, data):
+            if name != "detail":
+                return False
+            items = (data.get("detail") or {}).get("items", [])
+            return items and "hello from the talker" in items[0].get("tail", "")
+        yield self.wait_event(request, tail_seen, "the log tail to be pushed")
+        yield self.table.stop("ss/robot2/node/talk")
+
+    @defer.inlineCallbacks
+    def test_a_stream_gets_heartbeats_and_a_client_that_does_not_read_is_dropped(self):
+        request, _ = self.open()
+        yield self.wait_event(request, lambda n, d: n == "comment" and d == "heartbeat", "a heartbeat")
+        stream = request.producer
+        stream.pauseProducing()               # the connection's buffer is full: the client does not read
+        written = len(request.written)
+        for i in range(20):
+            self.data.provision_platform_instance(f"robot{i}", "empty")
+            yield self.console.next_snapshot()
+        self.assertTrue(request.aborted)
+        self.assertEqual(len(request.written), written)
+        self.assertNotIn(stream, self.console.streams)
+
+    @defer.inlineCallbacks
+    def test_streams_are_bounded_and_the_stop_ends_them(self):
+        opened = [self.open()[0] for _ in range(3)]
+        request = StreamRequest()
+        body = self.resource.render(request)
+        self.assertEqual(request.responseCode, 503)
+        self.assertIn("already serves 3 streams", json.loads(body)["reason"])
+        yield self.console.stop()
+        self.assertTrue(all(r.finished for r in opened))
+
+    def test_static_files_come_from_the_fixed_list_only(self):
+        request = StreamRequest(path=b"/console/")
+        body = self.resource.render(request)
+        self.assertIn(b"RCM platform console", body)
+        self.assertIn(b"default-src 'self'", request.responseHeaders.getRawHeaders(b"content-security-policy")[0])
+        for path in (b"/console/../rcmp_node.py", b"/console/%2e%2e/rcmp_node.py", b"/console/nothing.js"):
+            request = StreamRequest(path=path)
+            self.resource.render(request)
+            self.assertEqual(request.responseCode, 404, path)
+
+    def test_a_bad_space_name_is_refused_with_the_rdapi_sentence(self):
+        request = StreamRequest(path=b"/console/api/topic", args={b"ss_name": [b"../x"]})
+        body = self.resource.render(request)
+        self.assertEqual(request.responseCode, 400)
+        self.assertIn("'ss_name'", json.loads(body)["reason"])
+        request = StreamRequest(path=b"/console/api/topic", args={b"ss_name": [b"nobody"]})
+        body = self.resource.render(request)
+        self.assertEqual(request.responseCode, 404)
+        self.assertEqual(json.loads(body)["reason"], "there is no running service space named 'nobody'")
