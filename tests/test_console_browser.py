@@ -7,6 +7,7 @@ screenshots of docs/CONSOLE.md.
 """
 
 import os
+import subprocess
 import urllib.parse
 
 import pytest
@@ -55,8 +56,8 @@ def page(browser, platform, tmp_path):
     browser.driver.get("about:blank")
     browser.requested_urls(), browser.console_errors()   # only what the console does counts
     browser.driver.get(platform.master.base_url + "/console/")
-    wait_until(lambda: browser.js("return document.body.dataset.seq"), timeout=15,
-               message="the console to show the platform")
+    wait_until(lambda: browser.js("return document.body.dataset.seq && document.getElementById('live').textContent")
+               == "live", timeout=15, message="the console to show the platform, live")
     with browser.recording(tmp_path / "screenshots") as shot:
         yield shot
 
@@ -248,3 +249,41 @@ def test_the_live_view_of_the_demo_robots_pose_draws_and_changes(browser, platfo
     finally:
         stop_robot(platform, "demo_robot")
     assert platform.remove_robot("demo_robot")[0] == 200
+
+
+def rcmp_token(platform, *args):
+    """The real ``rcmp_n token ...`` on the master's home."""
+    done = subprocess.run(["/usr/bin/python3", "-m", "rcm_platform", "--home", platform.master.home, "token", *args],
+                          capture_output=True, text=True, timeout=60, env=platform.master.env(), cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()
+
+
+def test_with_tokens_in_force_the_console_asks_for_one_and_sends_it(browser, platform, page):
+    """Last of the module: it closes the RDAPI with a token and opens it again by revoking it."""
+    driver = browser.driver
+    token = rcmp_token(platform, "add", "console_test", "--role", "admin")
+    try:
+        wait_until(lambda: platform.master.get("/platform_instance/read")[0] == 401, timeout=10,
+                   message="the RDAPI to need the token")
+        assert platform.master.get("/console/api/events")[0] == 401     # the console's API too
+        assert platform.master.get("/console/console.js")[0] == 200     # its static files stay public
+        driver.get(platform.master.base_url + "/console/")
+        wait_until(lambda: driver.find_element(By.ID, "token-box").is_displayed(), timeout=10,
+                   message="the console to ask for a token")
+        page("token-asked")
+        assert "Bearer" in driver.find_element(By.ID, "token-error").text      # the RDAPI's sentence
+        assert "token" in driver.find_element(By.CSS_SELECTOR, "label[for=token-input]").text
+        driver.find_element(By.ID, "token-input").send_keys(token, Keys.ENTER)
+        wait_until(lambda: driver.find_element(By.ID, "live").text == "live", timeout=10,
+                   message="the stream to open with the token")
+        driver.find_element(By.ID, "pr-pi_name").send_keys("token_bot")
+        driver.find_element(By.ID, "pr-pi_service_logic").send_keys("empty", Keys.ENTER)
+        wait_until(lambda: row_cells(browser, "robots", "token_bot"), timeout=10, message="token_bot on the page")
+        page("provisioned-with-token")
+    finally:
+        rcmp_token(platform, "revoke", "console_test")
+        wait_until(lambda: platform.master.get("/platform_instance/read")[0] == 200, timeout=10,
+                   message="the RDAPI to be open again")
+    assert "token_bot" in platform.instances()
+    assert platform.remove_robot("token_bot")[0] == 200

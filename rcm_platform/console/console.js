@@ -157,7 +157,7 @@ function render() {
   const updated = $("updated");
   updated.textContent = localTime(state.at);
   updated.setAttribute("datetime", new Date(state.at * 1000).toISOString());
-  document.body.dataset.seq = String(state.seq);
+  if (state.seq) document.body.dataset.seq = String(state.seq);
   renderRobots();
   renderServers();
   renderLogics();

@@ -41,7 +41,7 @@ class Browser:
             options.add_argument(flag)
         options.set_capability("goog:loggingPrefs", {"browser": "ALL", "performance": "ALL"})
         self.driver = webdriver.Remote(command_executor=f"http://127.0.0.1:{port}", options=options)
-        self.driver.set_page_load_timeout(30)
+        self.driver.set_page_load_timeout(60)
         self.driver.set_script_timeout(30)
 
     # -- what the page did ------------------------------------------------------------------------------
