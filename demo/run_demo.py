@@ -4,7 +4,7 @@ It starts an RCM master on 127.0.0.1 (RDAPI on ``--port``, default 8080 or the n
 named ``demo_robot`` on 127.0.0.2, both as real ``python3 -m rcm_platform`` agents with their own platform
 folders under ``--workdir``; provisions the ``demo_patrol`` service logic (the simulated robot ``sim_robot`` on
 the robot side, the ``patrol_brain`` that steers it on the server side) and the robot; waits until the robot is
-``paired``; then prints the seed guide's curl commands with the right address. Ctrl-C (or SIGTERM) stops the
+``paired``; then prints the seed guide's curl commands with the right address and the console's address. Ctrl-C (or SIGTERM) stops the
 robot agent, then the master, and checks that each agent's process group is gone.
 """
 
@@ -148,7 +148,11 @@ Look around with the seed guide's commands (public_ip_master is {host}):
   curl http://{host}/service_logic/read?slg_name={SERVICE_LOGIC['slg_name']}
   curl "http://{host}/service_space/read?ss_name={ROBOT_NAME}"
 
-The robot's service space is a ROS master of its own{(' at ' + uri) if uri else ''}; watch the robot circle:
+Watch the platform and the robot circle in a browser, live (the console; choose the topic /pose):
+
+  Console: http://{host}/console/#/robot/{ROBOT_NAME}
+
+The robot's service space is a ROS master of its own{(' at ' + uri) if uri else ''}; on the command line:
 
   PATH=/usr/bin:$PATH ROS_MASTER_URI={uri or 'http://127.0.0.1:<port>/'} rostopic echo /pose
 

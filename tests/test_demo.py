@@ -5,6 +5,7 @@ import os
 import re
 import signal
 import subprocess
+import urllib.request
 
 import pytest
 
@@ -35,6 +36,26 @@ def _processes_mentioning(needle):
     return pids
 
 
+def _console_pose_moves(base):
+    """Two samples of /pose from the console's topic stream (Server-Sent Events) at different places."""
+    url = f"{base}/console/api/topic?ss_name=demo_robot&topic=/pose"
+    points = []
+    with urllib.request.urlopen(url, timeout=30) as stream:
+        event = None
+        for raw in stream:
+            line = raw.decode().rstrip("\n")
+            if line.startswith("event: "):
+                event = line[len("event: "):]
+            elif line.startswith("data: ") and event in ("sample", "samples"):
+                data = json.loads(line[len("data: "):])
+                for sample in data.get("samples", [data.get("sample")]):
+                    if sample and "x" in sample:
+                        points.append((sample["x"], sample["y"]))
+                if len(set(points)) >= 2:
+                    return True
+    return False
+
+
 @pytest.mark.slow
 def test_demo_pairs_shows_the_seed_commands_and_stops_cleanly_on_ctrl_c(procs, tmp_path):
     workdir = str(tmp_path / "demo")
@@ -61,6 +82,12 @@ def test_demo_pairs_shows_the_seed_commands_and_stops_cleanly_on_ctrl_c(procs, t
         x = re.search(r"^x: (\S+)", out, re.M)
         return x and float(x.group(1)) > 0.05
     wait_until(moved, timeout=30, message="the demo robot to move")
+
+    # the console shows it: its page, and the live pose the page plots (the browser itself: test_console_browser)
+    console = re.search(r"Console: (http://\S+)", text).group(1)
+    assert console == f"http://127.0.0.1:{port}/console/#/robot/demo_robot"
+    assert "<title>RCM platform console</title>" in _curl(console.split("#")[0])
+    assert _console_pose_moves(f"http://127.0.0.1:{port}")
 
     assert _processes_mentioning(workdir)
     assert _processes_mentioning(uri)  # the service space's nodes run against its ROS master
