@@ -52,6 +52,8 @@ builds the runtime and hands it (and the function giving the platform address) t
 """
 
 import collections
+import dataclasses
+import json
 import logging
 import os
 import re
@@ -99,6 +101,112 @@ SETPRIV = "/usr/bin/setpriv"
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?")  # colours, terminal titles
 
 
+@dataclasses.dataclass(frozen=True)
+class RunAs:
+    """The user service items run as (CONTRACTS §10 ``run_as``), with their own HOME and ROS_HOME.
+
+    ``home`` is the user's home folder when it exists and is theirs; otherwise (``nobody``) a private folder
+    made for them under the system's temp folder. ``ros_home`` is ``home/.ros`` (ROS logs go to its ``log``).
+    """
+
+    name: str
+    uid: int
+    gid: int
+    home: str
+    ros_home: str
+    overlay: object = None   # the workspace overlay (``rcmp_node.WorkspaceOverlay``) when this user owns it
+
+    @classmethod
+    def for_user(cls, entry, overlay=None):
+        """From a ``pwd`` entry; makes the fallback home (0700, theirs) when theirs is missing or not theirs.
+        ``overlay``: the workspace this user owns, whose code paths their children may use."""
+        home = entry.pw_dir
+        try:
+            usable = os.path.isdir(home) and os.stat(home).st_uid == entry.pw_uid
+        except OSError:
+            usable = False
+        if not usable:
+            home = cls._private_home(entry)
+        return cls(entry.pw_name, entry.pw_uid, entry.pw_gid, home, os.path.join(home, ".ros"), overlay)
+
+    @staticmethod
+    def _private_home(entry):
+        """``TMP/rcmp-home-NAME`` (0700, the user's), reused across starts when it is still a real folder of
+        theirs that nobody else can enter; else a fresh ``mkdtemp`` (someone else made that name first)."""
+        import stat
+        import tempfile
+        path = os.path.join(tempfile.gettempdir(), f"rcmp-home-{entry.pw_name}")
+        try:
+            os.mkdir(path, 0o700)
+            os.chown(path, entry.pw_uid, entry.pw_gid)
+            return path
+        except FileExistsError:
+            info = os.lstat(path)
+            if stat.S_ISDIR(info.st_mode) and info.st_uid == entry.pw_uid and not info.st_mode & 0o077:
+                return path
+        path = tempfile.mkdtemp(prefix=f"rcmp-home-{entry.pw_name}-")
+        os.chown(path, entry.pw_uid, entry.pw_gid)
+        return path
+
+    def setpriv_args(self):
+        """``setpriv`` options that make a child this user, with their groups."""
+        return [f"--reuid={self.uid}", f"--regid={self.gid}", "--init-groups"]
+
+    def environment(self, env):
+        """``env`` with this user's HOME, USER, LOGNAME, ROS_HOME and ROS_LOG_DIR (ROS_HOME/log), and the code
+        paths of the workspace they own."""
+        env = self.overlay.for_child(env, as_owner=True) if self.overlay is not None else dict(env)
+        env.update(HOME=self.home, USER=self.name, LOGNAME=self.name, ROS_HOME=self.ros_home,
+                   ROS_LOG_DIR=os.path.join(self.ros_home, "log"))
+        return env
+
+
+# What ``launcher_nodes_as`` runs in its child, as the run_as user: roslaunch's loader, as ``launcher_nodes`` uses
+# it in the agent, answering JSON on stdout (exit 3 and the message on stderr for roslaunch's own errors).
+LAUNCHER_NODES_PROGRAM = r"""
+import json, sys
+import roslaunch.config, roslaunch.core, roslaunch.rlutil
+package, launch_file, args = sys.argv[1], sys.argv[2], sys.argv[3:]
+try:
+    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)
+    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
+                                                  assign_machines=False)
+except roslaunch.core.RLException as exc:
+    sys.stderr.write(str(exc))
+    sys.exit(3)
+json.dump([[((n.namespace or "/") + n.name).lstrip("/"), n.package, n.type] for n in config.nodes], sys.stdout)
+"""
+
+
+def launcher_nodes_as(user, env, package, launch_file, params="", timeout=30.0):
+    """``launcher_nodes`` read in a child process running as ``user`` (a ``RunAs``), so that what a launch file
+    runs while it is loaded (``<param command=...>``, ``$(eval ...)``) never runs as the agent's root.
+
+    Blocking: call it in a thread. Raises RuntimeError with roslaunch's message (or why the child failed).
+    """
+    import subprocess
+    argv = [SETPRIV, *user.setpriv_args(), "--pdeathsig", "KILL", "--", "/usr/bin/python3", "-c",
+            LAUNCHER_NODES_PROGRAM, package, launch_file, *split_params(params or "")]
+    child = subprocess.Popen(argv, env=user.environment(env), cwd=user.home, stdin=subprocess.DEVNULL,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        out, err = child.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(child.pid, signal.SIGKILL)
+        child.communicate()
+        raise RuntimeError(f"reading the launch file as {user.name} took more than {timeout:g} s") from None
+    message = err.decode("utf-8", "replace").strip()
+    if child.returncode == 3:
+        raise RuntimeError(message.splitlines()[-1] if message else "roslaunch refused the launch file")
+    if child.returncode != 0:
+        last = message.splitlines()[-1] if message else f"exit status {child.returncode}"
+        raise RuntimeError(f"reading the launch file as {user.name} failed: {last}")
+    try:
+        return [tuple(entry) for entry in json.loads(out)]
+    except ValueError:
+        raise RuntimeError(f"reading the launch file as {user.name} gave no node list") from None
+
+
 class InvalidTransition(RuntimeError):
     """A state change that the closed state machine does not allow (a bug in the caller)."""
 
@@ -113,11 +221,16 @@ class OsFacade:
         self.reactor = reactor
         self._devnull = None
 
-    def spawn(self, process_protocol, argv, env, cwd=None):
-        """Start ``argv`` in a new session (setsid) with SIGTERM on agent death; returns the pid."""
+    def spawn(self, process_protocol, argv, env, cwd=None, user=None):
+        """Start ``argv`` in a new session (setsid) with SIGTERM on agent death, as ``user`` (a ``RunAs``) when
+        given (one setpriv switches the user first, then sets the death signal, which a user switch would
+        clear); returns the pid."""
         if self._devnull is None:
             self._devnull = os.open(os.devnull, os.O_RDONLY)
-        full = [SETSID, SETPRIV, "--pdeathsig", "TERM", "--"] + list(argv)
+        switch = user.setpriv_args() if user is not None else []
+        if user is not None and cwd is None:
+            cwd = user.home
+        full = [SETSID, SETPRIV, *switch, "--pdeathsig", "TERM", "--"] + list(argv)
         transport = self.reactor.spawnProcess(process_protocol, full[0], full, env=env, path=cwd,
                                               childFDs={0: self._devnull, 1: "r", 2: "r"})
         return transport.pid
@@ -260,10 +373,11 @@ class ManagedProcess:
 
     TAIL_KEEP = 200  # lines of recent output kept in memory for tail()
 
-    def __init__(self, table, key, argv, env, log_path, core=False):
+    def __init__(self, table, key, argv, env, log_path, core=False, user=None):
         self.table = table
         self.key = key
         self.argv = list(argv)
+        self.user = user             # RunAs, or None: the agent's own user
         self.env = env
         self.log_path = log_path
         self.core = core
@@ -337,9 +451,9 @@ class ManagedProcess:
     def _start(self):
         table = self.table
         self._log = CappedLog(self.log_path, table.log_max_bytes)
-        self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start: {shlex.join(self.argv)}\n".encode())
+        self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start{' as ' + self.user.name if self.user else ''}: {shlex.join(self.argv)}\n".encode())
         try:
-            self.pid = table.os.spawn(_ChildProtocol(self), self.argv, self.env)
+            self.pid = table.os.spawn(_ChildProtocol(self), self.argv, self.env, user=self.user)
         except (OSError, ValueError, TypeError) as exc:
             self.error = f"could not start {self.argv[0]}: {exc}"
             self._log.close()
@@ -524,8 +638,9 @@ class ProcessTable:
         self.observers = []   # fn(managed, old_state, new_state) after every transition of any child (the console)
         os.makedirs(self.log_dir, exist_ok=True)
 
-    def spawn(self, key, argv, env, log_name, core=False):
-        """Start ``argv`` (a list; never a shell) as child ``key``; ``core`` marks a ROS master (stopped last).
+    def spawn(self, key, argv, env, log_name, core=False, user=None):
+        """Start ``argv`` (a list; never a shell) as child ``key``; ``core`` marks a ROS master (stopped last);
+        ``user`` (a ``RunAs``) runs it as that user.
 
         Returns the ManagedProcess at once, in state ``starting`` (or ``failed`` if it could not be spawned).
         """
@@ -535,7 +650,8 @@ class ProcessTable:
         if current is not None and (current.state in LIVE_STATES or current._gone_waiters):
             raise ValueError(f"a process named {key} is already {current.state}")
         safe = re.sub(r"[^A-Za-z0-9_.-]", "_", log_name) or "process"
-        managed = ManagedProcess(self, key, argv, env, os.path.join(self.log_dir, safe + ".log"), core=core)
+        managed = ManagedProcess(self, key, argv, env, os.path.join(self.log_dir, safe + ".log"), core=core,
+                                 user=user)
         self._procs[key] = managed
         managed._start()
         return managed

@@ -73,6 +73,7 @@ class Config:
     rdapi_tls_cert: str | None = None  # (ext) master: PEM certificate (chain): the RDAPI speaks HTTPS
     rdapi_tls_key: str | None = None   # (ext) master: its PEM private key
     allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
+    run_as: str | None = None          # (ext) the user service items run as (default: the workspace's owner)
     max_starting_spaces: int | None = None       # (ext) service spaces the master builds at once (None: 2 per core)
     ic_max_connections: int | None = None        # (ext) agent-port connections (None: a quarter of the fd limit)
     ic_max_per_address: int | None = None        # (ext) agent-port connections from one address (None: 8)
@@ -177,6 +178,14 @@ def _parse_origins(value):
                              f"path): {part!r}")
         origins.append(part.lower())
     return tuple(origins)
+
+
+def _parse_user(value):
+    import re
+    value = value.strip()
+    if not re.match(r"[a-z_][a-z0-9_-]{0,31}\Z", value):
+        raise ValueError(f"not a user name (lower-case letters, digits, _ and -, at most 32): {value!r}")
+    return value
 
 
 # key -> (parser, roles that may set it)
@@ -487,6 +496,67 @@ def apply_workspace(environ):
              "root's alone: its code may run as root" if overlay.trusted
              else "not root's: its packages are found, its code runs only as its owner")
     return overlay
+
+
+# -- the user service items run as ---------------------------------------------------------------------------------
+
+def default_workspace(environ=None):
+    """The ROS workspace the installer made: ``$RCMP_WS`` (``rcmpd`` passes it), else ``~/rcmp_ws``."""
+    environ = os.environ if environ is None else environ
+    return environ.get("RCMP_WS") or os.path.join(environ.get("HOME") or os.path.expanduser("~"), "rcmp_ws")
+
+
+def resolve_run_as(config, environ=None):
+    """The ``rcmp_ms.RunAs`` service items run as, or None when they run as the agent's own user.
+
+    ``run_as`` if set, else the owner of the workspace (``default_workspace``). The agent must be root to run
+    them as anyone else; without ``run_as`` and without a workspace (a platform not installed, run by hand) the
+    items run as the agent's own user, and a root agent says so in the log. StartupError (one line) for a user
+    that does not exist, or a non-root agent asked to run items as another user.
+    """
+    from .rcmp_ms import RunAs
+    where = config.config_file or os.path.join(config.home, "init.cfg" if config.role != "master" else ".init.cfg")
+    euid = os.geteuid()
+    name = config.run_as
+    if name is None:
+        workspace = default_workspace(environ)
+        try:
+            owner = os.stat(workspace).st_uid
+        except OSError:
+            if euid == 0:
+                log.warning("service items run as root: no run_as in %s and no ROS workspace at %s to take its "
+                            "owner from (set run_as=USER; docs/SECURITY.md)", where, workspace)
+            return None
+        try:
+            name = pwd.getpwuid(owner).pw_name
+        except KeyError:
+            raise StartupError(f"{workspace}: owned by uid {owner}, which is no user of this machine: set run_as "
+                               f"in {where}") from None
+        how = f"the owner of {workspace}"
+    else:
+        how = f"run_as in {where}"
+    try:
+        entry = pwd.getpwnam(name)
+    except KeyError:
+        raise StartupError(f"{where}: key 'run_as': there is no user {name!r} on this machine") from None
+    if entry.pw_uid == euid:
+        if euid == 0:
+            log.info("service items run as root (%s)", how)
+        return None
+    if euid != 0:
+        raise StartupError(f"{where}: key 'run_as': the agent runs as uid {euid}, not root, so it cannot run "
+                           f"service items as {name!r}: remove run_as or start the agent as root")
+    overlay = None
+    if (environ if environ is not None else os.environ).get("RCMP_WS"):
+        try:
+            overlay = workspace_overlay(default_workspace(environ))
+        except (OSError, subprocess.SubprocessError):
+            overlay = None   # apply_workspace has said why
+    # the workspace's code paths (PYTHONPATH, ...) are safe for children running as its owner only
+    run_as = RunAs.for_user(entry, overlay if overlay is not None and overlay.owner_uid == entry.pw_uid else None)
+    log.info("service items run as %s (uid %d, %s), HOME %s%s", name, entry.pw_uid, how, run_as.home,
+             ", with its workspace's code paths" if run_as.overlay is not None else "")
+    return run_as
 
 
 # -- assembly ---------------------------------------------------------------------------------------------------

@@ -29,7 +29,7 @@ class RecordingOs:
         self.next_pid = 1000
         self.fail_spawn = None
 
-    def spawn(self, proto, argv, env, cwd=None):
+    def spawn(self, proto, argv, env, cwd=None, user=None):
         if self.fail_spawn:
             raise self.fail_spawn
         self.next_pid += 1
