@@ -954,13 +954,15 @@ class _SpaceHost:
 
     key_prefix = "ss"
 
-    def __init__(self, reactor, table, config, env=None, address=None):
+    def __init__(self, reactor, table, config, env=None, address=None, run_as=None):
         """``address``: the platform address children advertise (ROS_IP), or a function giving it now (it
-        may appear late, with the VPN); None: ``config.vpn_address``."""
+        may appear late, with the VPN); None: ``config.vpn_address``. ``run_as``: the ``RunAs`` every process
+        of a space runs as (its ROS master, rosout and items), None for the agent's own user."""
         self.reactor = reactor
         self.table = table
         self.config = config
         self.env = env
+        self.run_as = run_as
         self._address = address
         self.spaces = {}
         self.ros_log_dir = os.path.join(table.log_dir, "ros")
@@ -1018,9 +1020,9 @@ class _SpaceHost:
         port = self._choose_ros_port(base)
         space.ros_master_port = port
         space.ros_master_uri = f"http://{space.address}:{port}/"
-        space.core_env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
+        space.core_env = self._child_env(space)
         space.master = self.table.spawn(space.key("rosmaster"), ["rosmaster", "--core", "-p", str(port)],
-                                        space.core_env, f"{space.name}-rosmaster", core=True)
+                                        space.core_env, f"{space.name}-rosmaster", core=True, user=self.run_as)
 
     @defer.inlineCallbacks
     def _master_ready(self, space):
@@ -1035,7 +1037,7 @@ class _SpaceHost:
         if space.cancelled:
             return
         space.rosout = self.table.spawn(space.key("rosout"), ["rosrun", "rosout", "rosout"], space.core_env,
-                                        f"{space.name}-rosout", core=True)
+                                        f"{space.name}-rosout", core=True, user=self.run_as)
         space.rosout.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
         space.master.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
         # rosout only collects logs: pairing does not wait for it to register (its failure still unpairs)
@@ -1133,7 +1135,7 @@ class _SpaceHost:
         yield defer.gatherResults([self._prepare(space, item) for item in items], consumeErrors=True)
         if space.cancelled:
             return
-        env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
+        env = self._child_env(space)
         for item in items:
             if item.error is None:
                 self._spawn_item(space, item, env)
@@ -1171,7 +1173,11 @@ class _SpaceHost:
                     space.reason = str(exc)
             return
         try:
-            if self._roslaunch_imported:
+            if self.run_as is not None:
+                # roslaunch's loader runs what a launch file asks (<param command>, $(eval)): as the items' user
+                nodes = yield threads.deferToThread(launcher_nodes_as, self.run_as, self._child_env(space),
+                                                    item.package, item.type_or_file, item.params)
+            elif self._roslaunch_imported:
                 nodes = yield threads.deferToThread(launcher_nodes, item.package, item.type_or_file, item.params)
             else:
                 # The first parse imports ~300 modules (roslaunch, rospkg, pkg_resources...). An import running
@@ -1185,6 +1191,15 @@ class _SpaceHost:
         item.nodes = [n for n, _, _ in nodes]
         item.node_types = {n: (p, t) for n, p, t in nodes}
 
+    def _child_env(self, space):
+        """The environment of the space's processes (``child_env``), with the run_as user's own HOME, ROS_HOME
+        and ROS_LOG_DIR when there is one, and ``RCMP_HOME`` naming the agent's folder they belong to."""
+        env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
+        if self.run_as is not None:
+            env = self.run_as.environment(env)
+            env["RCMP_HOME"] = os.path.dirname(self.table.log_dir)
+        return env
+
     def _spawn_item(self, space, item, env):
         special = item.special
         try:
@@ -1192,8 +1207,8 @@ class _SpaceHost:
         except CommandError as exc:  # params that do not split (validation lets none through)
             item.fail(f"cannot split the params {item.params!r}: {exc}")
             return
-        item.process = self.table.spawn(space.key(item.kind, item.name), argv, env,
-                                        f"{space.name}-{item.name}")
+        item.process = self.table.spawn(space.key(item.kind, item.name), argv, env, f"{space.name}-{item.name}",
+                                        user=self.run_as)
         item.process.listeners.append(lambda mp, old, new: self._item_changed(space, item, new))
 
     def _item_changed(self, space, item, new):
@@ -1223,8 +1238,8 @@ class ServiceSpaceManager(_SpaceHost):
 
     key_prefix = "ss"
 
-    def __init__(self, reactor, table, config, public_ip, env=None, on_state=None, address=None):
-        super().__init__(reactor, table, config, env=env, address=address)
+    def __init__(self, reactor, table, config, public_ip, env=None, on_state=None, address=None, run_as=None):
+        super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
         self.public_ip = public_ip
         self.on_state = on_state
         self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes
@@ -1498,8 +1513,8 @@ class RobotSideRunner(_SpaceHost):
 
     key_prefix = "robot"
 
-    def __init__(self, reactor, table, config, env=None, on_item_exited=None, address=None):
-        super().__init__(reactor, table, config, env=env, address=address)
+    def __init__(self, reactor, table, config, env=None, on_item_exited=None, address=None, run_as=None):
+        super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
         self.on_item_exited = on_item_exited
         self.i_name = config.name
 

@@ -210,6 +210,7 @@ KEYS = {
     "max_starting_spaces": (_int_parser(1, 1000), ("master",)),
     "ic_max_connections": (_int_parser(1, 100000), ("master",)),
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
+    "run_as": (_parse_user, ("master", "robot", "server")),
 }
 
 
@@ -607,10 +608,11 @@ def build_master(config, reactor, table=None):
             tls = tls_options(config.rdapi_tls_cert, config.rdapi_tls_key)
         except TlsError as exc:
             raise StartupError(f"{where}: keys 'rdapi_tls_cert'/'rdapi_tls_key': {exc}") from None
+    run_as = resolve_run_as(config)
     top = _top_service(config, reactor, table)
     table = top.table
     address = functools.partial(platform_address, config)
-    spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, address=address)
+    spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, address=address, run_as=run_as)
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip, spaces=spaces, address=address,
                                    expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
     tokens = Tokens(data, reactor)
@@ -630,10 +632,11 @@ def build_master(config, reactor, table=None):
 def build_robot(config, reactor, table=None):
     """A robot or a server VM: the RobotAgent as one MultiService."""
     from . import rcmp_event, rcmp_ms
+    run_as = resolve_run_as(config)
     top = _top_service(config, reactor, table)
     table = top.table
     address = functools.partial(platform_address, config)
-    runner = rcmp_ms.RobotSideRunner(reactor, table, config, address=address)
+    runner = rcmp_ms.RobotSideRunner(reactor, table, config, address=address, run_as=run_as)
     agent = rcmp_event.RobotAgent(config, table, reactor, runner=runner, address=address)
     agent.setServiceParent(top)
     return top

@@ -75,7 +75,7 @@ def test_items_run_as_the_run_as_user(platform):
     # the ROS masters of the space too: nothing of it runs as root
     master_uri = platform.space("robot1")[1]["ros_master_uri"]
     port = master_uri.rsplit(":", 1)[1].strip("/")
-    rosmasters = [pid for pid, cmd in processes_mentioning(f"-p {port}") if "rosmaster" in cmd]
+    rosmasters = [pid for pid, cmd in processes_mentioning(port) if "rosmaster" in cmd and f"-p {port}" in cmd]
     assert rosmasters and all(status_ids(pid, "Uid") == [NOBODY.pw_uid] * 4 for pid in rosmasters)
     assert robot.stop() == 0
     platform.wait_state("robot1", False, False)
