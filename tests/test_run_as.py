@@ -98,3 +98,27 @@ def test_run_as_mistakes_stop_the_agent_with_one_line(procs, tmp_path, role, val
     assert agent.process.returncode == 2
     lines = agent.output().strip().splitlines()
     assert len(lines) == 1 and "run_as" in lines[0] and expected in lines[0], lines
+
+
+def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tmp_path):
+    from rcm_platform.rcmp_ms import RunAs
+    from rcm_platform.rcmp_node import Config, WorkspaceOverlay, resolve_run_as
+    workspace = tmp_path / "rcmp_ws"
+    workspace.mkdir()
+    os.chown(workspace, NOBODY.pw_uid, NOBODY.pw_gid)
+    config = Config(home=str(tmp_path), role="robot", config_file=None, name="r1", ip_master=None,
+                    inbound_open_ports=[])
+    run_as = resolve_run_as(config, {"RCMP_WS": str(workspace)})
+    assert (run_as.name, run_as.uid, run_as.gid) == ("nobody", NOBODY.pw_uid, NOBODY.pw_gid)
+    assert run_as.setpriv_args() == [f"--reuid={NOBODY.pw_uid}", f"--regid={NOBODY.pw_gid}", "--init-groups"]
+    # HOME=~/rcmp_ws's owner has none of their own here: a private folder, theirs only
+    assert os.stat(run_as.home).st_uid == NOBODY.pw_uid and not os.stat(run_as.home).st_mode & 0o077
+    # no workspace and no run_as: the agent's own user (None), said in the log by a root agent
+    assert resolve_run_as(config, {"RCMP_WS": str(tmp_path / "none")}) is None
+    # the owner's children get the workspace's code paths; another user's do not
+    overlay = WorkspaceOverlay(str(workspace), NOBODY.pw_uid, NOBODY.pw_gid, False,
+                               {"ROS_PACKAGE_PATH": "/ws/src"}, {"PYTHONPATH": "/ws/devel/lib/python3/dist-packages"})
+    owner = RunAs.for_user(NOBODY, overlay).environment({"PATH": "/usr/bin:/bin", "HOME": "/root"})
+    assert owner["PYTHONPATH"] == "/ws/devel/lib/python3/dist-packages" and owner["HOME"] != "/root"
+    other = RunAs.for_user(NOBODY).environment({"PATH": "/usr/bin:/bin"})
+    assert "PYTHONPATH" not in other and other["USER"] == "nobody"
