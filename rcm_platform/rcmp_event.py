@@ -206,6 +206,11 @@ class MasterAgent(service.Service):
         self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
         self._starting = {}          # robot name -> session whose space is being built now
         self.counters = collections.Counter()        # sessions opened / ended, hellos refused by code, ...
+        # provisioned robots known to exist (name -> {"pi_name", "service_logic"}), so that a fleet's hellos after
+        # a restart need no SQLite read: filled at start and on each successful lookup; a removal (only through
+        # remove(), under the robot's lock, like the hello's check) takes its name out first
+        self._provisioned = {}
+        self._removals = 0
         self.listening = None
         self.address = None
         self._address_call = None
@@ -214,6 +219,7 @@ class MasterAgent(service.Service):
     def startService(self):
         """Listen on the platform address; raises CannotListenError at once when the port is taken."""
         super().startService()
+        self._preload_provisioning()
         self.address = self.address or self._platform_address()
         if self.address is not None:
             self._listen()
@@ -221,6 +227,17 @@ class MasterAgent(service.Service):
             log.warning("waiting for the platform address (interface %s has no IPv4 address yet)",
                         self.config.vpn_interface)
             self._address_call = self.reactor.callLater(ADDRESS_POLL, self._wait_for_address)
+
+    def _preload_provisioning(self):
+        removals = self._removals
+
+        def fill(rows):
+            if self._removals == removals:      # no removal meanwhile: the snapshot is still true
+                for row in rows:
+                    self._provisioned.setdefault(row["pi_name"], {"pi_name": row["pi_name"],
+                                                                  "service_logic": row["service_logic"]})
+        d = threads.deferToThread(self.data.platform_instances)
+        d.addCallbacks(fill, lambda f: log.warning("provisioned robots not preloaded: %s", f.getErrorMessage()))
 
     def _wait_for_address(self):
         self._address_call = None
@@ -275,6 +292,8 @@ class MasterAgent(service.Service):
         def work():
             session = self.sessions.get(pi_name)
             yield self._end_session(session, reason, tell_robot=True)
+            self._provisioned.pop(pi_name, None)
+            self._removals += 1
             yield threads.deferToThread(remove)
             return session is not None
         return self._locked(pi_name, work)
@@ -402,7 +421,11 @@ class MasterAgent(service.Service):
     def _admit(self, peer, name, robot):
         """Under ``name``'s lock: its provisioning, the takeover rule, then the new session; the provisioning row
         (None when the connection closed meanwhile)."""
-        pi = yield threads.deferToThread(self.data.platform_instance, name)
+        pi = self._provisioned.get(name)
+        if pi is None:
+            pi = yield threads.deferToThread(self.data.platform_instance, name)
+            if pi is not None:
+                self._provisioned[name] = {"pi_name": name, "service_logic": pi["service_logic"]}
         if pi is None:
             self._log_refusal("refused hello from %s (%s): not provisioned", name, peer.remote)
             raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "

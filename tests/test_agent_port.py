@@ -218,6 +218,9 @@ class GatedData:
         self.lookups_waiting -= 1
         return self.real.platform_instance(name)
 
+    def platform_instances(self):
+        return []      # the robot is provisioned after the master started: its hello looks it up
+
     def __getattr__(self, attr):
         return getattr(self.real, attr)
 
@@ -272,6 +275,21 @@ class RaceTests(MasterCase):
         self.assertEqual(caught.exception.code, "not_provisioned")
         self.assertEqual(self.master.sessions, {})
         self.assertEqual(self.spaces.created, [])
+
+    @defer.inlineCallbacks
+    def test_a_known_robot_needs_no_lookup_and_a_removal_forgets_it(self):
+        commands = PlatformCommands(self.data.real, robots=self.master)
+        peer = yield self.connect("127.0.0.2")
+        yield peer.request("hello", hello_body("robot1"))
+        yield self.master.disconnect("robot1", "test")
+        self.data.gate.clear()                       # a lookup now would hang: the second hello must not need one
+        again = yield self.connect("127.0.0.2")
+        answer = yield again.request("hello", hello_body("robot1"), timeout=3)
+        self.assertTrue(answer["accepted"])
+        self.data.gate.set()
+        yield commands.r_provisioning({"pi_name": "robot1"})
+        third = yield self.connect("127.0.0.2")
+        yield self.refused(third, hello_body("robot1"), "not_provisioned")
 
     @defer.inlineCallbacks
     def test_many_races_always_end_clean(self):

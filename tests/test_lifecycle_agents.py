@@ -40,6 +40,11 @@ class Data:
             return {"pi_name": name, "service_logic": "logic", "connected": False, "paired": False,
                     "address": None}
 
+    def platform_instances(self):
+        with self.lock:
+            return [{"pi_name": name, "service_logic": "logic", "connected": False, "paired": False}
+                    for name in sorted(self.provisioned)]
+
     def service_logic(self, name):
         return {"ss_side": "S", "sn_list": [{"sn_name": "r_node", "sn_side": "R"}], "sl_list": []}
 
@@ -248,9 +253,10 @@ class AgentTests(unittest.TestCase):
     def test_disconnect_tears_down_and_the_robot_is_told_why(self):
         agent, runner = self.robot()
         yield until(lambda: "paired" in self.data.names("robot1"))
-        with self.data.lock:
-            self.data.provisioned.discard("robot1")   # as r_provisioning does right after
-        yield self.master.disconnect("robot1", "robot1 was removed from the platform")
+        def remove():
+            with self.data.lock:
+                self.data.provisioned.discard("robot1")   # what r_provisioning's removal does
+        yield self.master.remove("robot1", "robot1 was removed from the platform", remove)
         self.assertEqual(self.data.names("robot1")[-1], "disconnected")
         self.assertEqual(runner.stopped, ["robot1"])
         yield until(lambda: any("removed from the platform" in line for line in self.log.lines))
