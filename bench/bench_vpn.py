@@ -28,7 +28,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-from bench.bench_lifecycle import LOGIC, time_to_pair  # noqa: E402
+from bench.bench_lifecycle import LOGIC, load_average, time_to_pair  # noqa: E402
 from bench.report import write_section  # noqa: E402
 from tests.support.hosts import Lan  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
@@ -105,6 +105,7 @@ def main(argv=None):
     if os.geteuid() != 0:
         print("bench_vpn: needs root (test hosts are network namespaces); skipped", file=sys.stderr)
         return 1
+    load_before = load_average()
     with tempfile.TemporaryDirectory(prefix="bench-vpn-") as tmp:
         loopback = loopback_pairing(tmp, args.runs)
         with Lan() as lan:
@@ -119,6 +120,7 @@ def main(argv=None):
             connect = openvpn_connect(p, robot, args.runs)
             whole, from_openvpn = vpn_pairing(p, robot, args.runs)
             p.master.stop()
+    load_after = load_average()
 
     def runs(values):
         return ", ".join(f"{v:.2f}" for v in values)
@@ -146,6 +148,7 @@ then starts OpenVPN first); OpenVPN start → paired is {ovpn_p50:.2f} s against
 {connect_p50:.2f} s, so pairing adds {ovpn_p50 - connect_p50:.2f} s once the tunnel is up (loopback: {loop_p50:.2f} s,
 including the agent's own start). Most of OpenVPN's connect is its TLS handshake and the pushed
 configuration; the agent notices `tun0`'s address within 0.1 s (its poll) and says hello at once.
+Load average (1 / 5 min) at the start {load_before}, at the end {load_after} (2 cores).
 """
     print(body)
     if not args.no_write:
