@@ -241,10 +241,14 @@ def test_the_live_view_of_the_demo_robots_pose_draws_and_changes(browser, platfo
         if DOC_SHOTS:
             wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 60, timeout=30,
                        message="a longer trail for the documentation")
-            browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-robot.png"))
-            browser.driver.get(platform.master.base_url + "/console/")
-            wait_until(lambda: row_cells(browser, "robots", "demo_robot"), timeout=10, message="the overview")
-            browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-overview.png"))
+            browser.driver.set_window_size(1100, 1300)
+            try:
+                browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-robot.png"))
+                browser.driver.get(platform.master.base_url + "/console/")
+                wait_until(lambda: row_cells(browser, "robots", "demo_robot"), timeout=10, message="the overview")
+                browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-overview.png"))
+            finally:
+                browser.driver.set_window_size(1280, 900)
         assert [e for e in browser.console_errors() if "Uncaught" in e.get("message", "")] == []
     finally:
         stop_robot(platform, "demo_robot")

@@ -154,6 +154,7 @@ function onEvent(name, data) {
 
 // -- rendering -----------------------------------------------------------------------------------------------
 function render() {
+  const began = performance.now();
   const updated = $("updated");
   updated.textContent = localTime(state.at);
   updated.setAttribute("datetime", new Date(state.at * 1000).toISOString());
@@ -162,7 +163,7 @@ function render() {
   renderServers();
   renderLogics();
   renderRobot();
-  document.body.dataset.renderedAt = String(Date.now());
+  document.body.dataset.renderMs = (performance.now() - began).toFixed(1);
 }
 
 function robotRow(r) {
@@ -365,9 +366,8 @@ function frame(canvas, xs, ys) {
   const sx = (w - 2 * pad) / (x1 - x0), sy = (h - 2 * pad) / (y1 - y0);
   ctx.fillStyle = "#5a6270";
   ctx.font = "12px sans-serif";
-  ctx.fillText(y1.toFixed(2), 2, pad - 6);
-  ctx.fillText(y0.toFixed(2), 2, h - 4);
-  ctx.fillText(x1.toFixed(2), w - 60, h - 4);
+  ctx.fillText(`y ${y0.toFixed(2)} … ${y1.toFixed(2)}`, 4, 14);
+  ctx.fillText(`x ${x0.toFixed(2)} … ${x1.toFixed(2)}`, 4, h - 6);
   return { ctx, px: (x) => pad + (x - x0) * sx, py: (y) => h - pad - (y - y0) * sy };
 }
 
