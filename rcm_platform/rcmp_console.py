@@ -454,13 +454,16 @@ class TopicWatch:
         from .rcmp_command import child_env
         package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env = child_env(self.console.env, self.ros_master_uri, self.address,
-                                os.path.join(self.console.table.log_dir, "ros"))
+                        os.path.join(self.console.table.log_dir, "ros"))
+        run_as = getattr(self.console.spaces, "run_as", None)   # it reads robots' traffic: never as root
+        if run_as is not None:
+            env = run_as.environment(env)
         env["PYTHONPATH"] = package_root + (":" + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         argv = ["/usr/bin/python3", "-m", "rcm_platform.rcmp_console", "watch", "--port", str(port),
                 "--name", self.ss_name]
         env["RCMP_CONSOLE_KEY"] = self.key   # not on the command line, where any local user could read it
         self.process = self.console.table.spawn(f"console/watch/{self.ss_name}", argv, env,
-                                                f"console-watch-{self.ss_name}")
+                                                f"console-watch-{self.ss_name}", user=run_as)
         log.info("console: watching the topics of service space %s", self.ss_name)
 
     def open_stream(self, request, topic):
