@@ -8,6 +8,14 @@ from tests.support.processes import ProcessGroup
 from tests.support.rosmaster import RosMaster
 
 
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item, call):
+    """Keep each phase's report on the test item (``item.rep_call``), so a fixture can tell the test failed."""
+    outcome = yield
+    report = outcome.get_result()
+    setattr(item, f"rep_{report.when}", report)
+
+
 @pytest.fixture
 def procs(tmp_path):
     """Child processes of this test; all are stopped and checked gone when the test ends, even on failure."""

@@ -51,15 +51,18 @@ def browser(tmp_path_factory):
 
 
 @pytest.fixture
-def page(browser, platform, tmp_path):
+def page(browser, platform, tmp_path, request):
     """The console, freshly loaded; screenshots of the states the test names, kept when it fails."""
     browser.driver.get("about:blank")
     browser.requested_urls(), browser.console_errors()   # only what the console does counts
     browser.driver.get(platform.master.base_url + "/console/")
     wait_until(lambda: browser.js("return document.body.dataset.seq && document.getElementById('live').textContent")
                == "live", timeout=15, message="the console to show the platform, live")
-    with browser.recording(tmp_path / "screenshots") as shot:
-        yield shot
+    shot = browser.recorder()
+    yield shot
+    report = getattr(request.node, "rep_call", None)
+    if report is None or report.failed:
+        shot.save(tmp_path / "screenshots")
 
 
 def row_cells(browser, table, name):

@@ -4,11 +4,10 @@
 ``ProcessGroup`` (its own session, stopped as a group and checked gone), and a Chromium through it with a fresh
 ``--user-data-dir`` under ``folder`` and the flags that keep it off the network (no background requests, no
 component updates, no sync). ``quit()`` ends the browser and checks that no process mentioning its profile
-folder is left. ``recording(folder)`` keeps a screenshot of each state a test names with ``shot(name)`` and
-writes them all (plus the final state) to ``folder`` only when the test fails.
+folder is left. ``recorder()`` keeps a screenshot of each state a test names (``shot(name)``); ``save(folder)``
+writes them all, plus the state at that moment, when the test failed.
 """
 
-import contextlib
 import json
 import os
 
@@ -62,24 +61,8 @@ class Browser:
         return self.driver.execute_script(script, *args)
 
     # -- screenshots ------------------------------------------------------------------------------------
-    @contextlib.contextmanager
-    def recording(self, folder):
-        shots = []
-
-        def shot(name):
-            shots.append((name, self.driver.get_screenshot_as_png()))
-        try:
-            yield shot
-        except BaseException:
-            os.makedirs(str(folder), exist_ok=True)
-            try:
-                shot("at-failure")
-            except Exception:  # the browser itself may be what failed
-                pass
-            for index, (name, png) in enumerate(shots):
-                with open(os.path.join(str(folder), f"{index:02d}-{name}.png"), "wb") as f:
-                    f.write(png)
-            raise
+    def recorder(self):
+        return Screenshots(self.driver)
 
     def quit(self):
         try:
@@ -90,3 +73,24 @@ class Browser:
             self.procs.stop(self.driver_process)
             wait_until(lambda: not processes_mentioning(self.profile), timeout=15,
                        message=f"every Chromium process to be gone: {processes_mentioning(self.profile)}")
+
+
+class Screenshots:
+    """Screenshots of the states a test went through, in memory until ``save`` writes them."""
+
+    def __init__(self, driver):
+        self.driver = driver
+        self.shots = []
+
+    def __call__(self, name):
+        self.shots.append((name, self.driver.get_screenshot_as_png()))
+
+    def save(self, folder):
+        os.makedirs(str(folder), exist_ok=True)
+        try:
+            self("at-failure")
+        except Exception:  # the browser itself may be what failed
+            pass
+        for index, (name, png) in enumerate(self.shots):
+            with open(os.path.join(str(folder), f"{index:02d}-{name}.png"), "wb") as f:
+                f.write(png)
