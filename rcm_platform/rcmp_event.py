@@ -41,7 +41,8 @@ _NONE = type(None)
 
 # op -> (who serves it, {field: accepted types}); fields in OPTIONAL may be absent (then None)
 OPS = {
-    "hello": ("master", {"name": str, "address": str, "robot": bool, "version": int}),
+    "hello": ("master", {"name": str, "address": str, "robot": bool, "version": int,
+                         "max_service_spaces": (int, _NONE)}),
     "bye": ("master", {"reason": str}),
     "item_exited": ("master", {"ss_name": str, "report": dict}),
     "heartbeat": ("both", {}),
@@ -50,7 +51,8 @@ OPS = {
     "stop_items": ("robot", {"ss_name": str}),
     "disconnect": ("robot", {"reason": str}),
 }
-OPTIONAL = {"ros_master_uri", "start_ros_master_port"}
+OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces"}
+MAX_SERVICE_SPACES = 100         # a server VM's max_service_spaces when its hello does not say
 
 
 def default_max_starting_spaces():
@@ -148,7 +150,8 @@ class RobotSession:
         self.watchdog = rcmp_wd.Watchdog(
             agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
             send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
-            last_heard=lambda: peer.last_heard, on_gone=self._gone, name=f"robot {name}")
+            last_heard=lambda: peer.last_heard, on_gone=self._gone,
+            name=f"{'robot' if robot else 'server'} {name}")
 
     def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
         return self.peer.request("start_items", {
@@ -164,7 +167,7 @@ class RobotSession:
         self.peer.abort(f"no heartbeat for {silent:.1f} s")
 
     def __repr__(self):
-        return f"<RobotSession {self.name} at {self.address}>"
+        return f"<{'RobotSession' if self.robot else 'ServerSession'} {self.name} at {self.address}>"
 
 
 class MasterAgent(service.Service):
@@ -199,6 +202,7 @@ class MasterAgent(service.Service):
         self.spaces = spaces
         self._platform_address = _address_function(config, address)
         self.sessions = {}           # robot name -> RobotSession
+        self.servers = {}            # server VM name -> its session (robot false): it hosts service spaces
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
         self._write = _OrderedWrites()
         self.max_starting_spaces = (getattr(config, "max_starting_spaces", None)
@@ -274,6 +278,9 @@ class MasterAgent(service.Service):
             self._locked(name, self._end_session, self.sessions.get(name), "the master is stopping",
                          tell_robot=True) for name in list(self.sessions)], consumeErrors=True)
         yield self.spaces.teardown_all()
+        yield defer.gatherResults([
+            self._locked(name, self._end_server, self.servers.get(name), "the master is stopping", tell=True)
+            for name in list(self.servers)], consumeErrors=True)
         yield self._write(lambda: None)
 
     # -- public -----------------------------------------------------------------------------------------
@@ -301,6 +308,15 @@ class MasterAgent(service.Service):
     def connected_robots(self):
         return sorted(self.sessions)
 
+    def server_rows(self):
+        """``platform_instance/read?pi_type=S``: the master and the connected server VMs (CONTRACTS §8)."""
+        return self.spaces.server_rows(self.address)
+
+    def server_of(self, pi_name):
+        """The name of the server hosting ``pi_name``'s service space, or None while it has none."""
+        space = self.spaces.spaces.get(pi_name)
+        return getattr(space, "server", None)
+
     def describe(self, ss_name):
         """The service_space/read payload: the space manager's space, or, for a space waiting to be built, why."""
         if ss_name in self._waiting:
@@ -319,9 +335,11 @@ class MasterAgent(service.Service):
         if session is None or session.ended:
             raise ic.Refused(f"{op} before an accepted hello", code="no_session")
         if op == "item_exited":
-            if body["ss_name"] != session.name:
-                raise ic.Refused(f"robot {session.name} cannot report items of service space "
-                                 f"{body['ss_name']!r}", code="bad_request")
+            hosts = (session.robot and body["ss_name"] == session.name) or (
+                not session.robot and body["ss_name"] in self.spaces.spaces_of(session.name))
+            if not hosts:
+                raise ic.Refused(f"{'robot' if session.robot else 'server'} {session.name} cannot report items "
+                                 f"of service space {body['ss_name']!r}", code="bad_request")
             self.spaces.item_exited(body["ss_name"], body["report"])
             return {}
         if op == "bye":
@@ -352,11 +370,13 @@ class MasterAgent(service.Service):
         session = peer.info.get("session")
         if session is None or session.ended:
             return
+        what = "robot" if session.robot else "server"
         if peer.info.get("said_bye"):
-            log.info("robot %s left: %s", session.name, why)
+            log.info("%s %s left: %s", what, session.name, why)
         else:
-            log.warning("lost robot %s: %s", session.name, why)
-        self._locked(session.name, self._end_session, session, f"connection lost: {why}")
+            log.warning("lost %s %s: %s", what, session.name, why)
+        end = self._end_session if session.robot else self._end_server
+        self._locked(session.name, end, session, f"connection lost: {why}")
 
     # -- hello ------------------------------------------------------------------------------------------
     @defer.inlineCallbacks
@@ -373,7 +393,8 @@ class MasterAgent(service.Service):
             raise
         finally:
             peer.info["hello_pending"] = False
-        log.info("robot %s connected from %s (hello answered in %.3f s)", body["name"], peer.host,
+        log.info("%s %s connected from %s (hello answered in %.3f s)", "robot" if body["robot"] else "server",
+                 body["name"], peer.host,
                  self.reactor.seconds() - started)
         return answer
 
@@ -400,6 +421,14 @@ class MasterAgent(service.Service):
                             expected)
                 raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
                                  f"{peer.host}", code="wrong_address")
+        if not body["robot"]:
+            session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"])
+            if session is None:
+                raise ic.Refused("the connection closed during hello", code="gone")
+            self.spaces.add_server(name, session, session.capacity, peer.host)
+            return {"accepted": True, "master": self.config.name,
+                    "heartbeat_interval": self.config.heartbeat_interval,
+                    "heartbeat_misses": self.config.heartbeat_misses}
         pi = yield self._locked(name, self._admit, peer, name, body["robot"])
         if pi is None:
             raise ic.Refused("the connection closed during hello", code="gone")
@@ -456,6 +485,56 @@ class MasterAgent(service.Service):
         peer.last_heard = max(peer.last_heard, self.reactor.seconds())
         session.watchdog.start()
         return pi
+
+    @defer.inlineCallbacks
+    def _admit_server(self, peer, name, capacity):
+        """Under ``name``'s lock: a server VM joins by itself (CONTRACTS §8). Refused when ``name`` is a provisioned
+        robot's or a live server's from another address; the new session."""
+        if capacity is not None and not 0 <= capacity <= 100000:
+            raise ic.Refused(f"hello: max_service_spaces must be between 0 and 100000, not {capacity}",
+                             code="bad_request")
+        pi = yield threads.deferToThread(self.data.platform_instance, name)
+        if pi is not None or name in self.sessions:
+            self._log_refusal("refused hello from server %s (%s): a robot has that name", name, peer.remote)
+            raise ic.Refused(f"{name!r} is provisioned as a robot; give the server VM another name",
+                             code="name_taken")
+        old = self.servers.get(name)
+        if old is not None and not old.ended:
+            silent = self.reactor.seconds() - (old.peer.last_heard or 0)
+            if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
+                raise ic.Refused(f"server {name!r} has a live session from {old.address}; a hello from "
+                                 f"{peer.host} cannot take it over", code="in_use")
+            old.peer.abort("replaced by a new hello from the server")
+            yield self._end_server(old, "replaced by a new hello from the server")
+        if peer.closed:
+            return None
+        session = RobotSession(self, peer, name, peer.host, False)
+        session.capacity = MAX_SERVICE_SPACES if capacity is None else capacity
+        peer.admit()
+        peer.info["session"] = session
+        self.servers[name] = session
+        self.counters["servers_joined"] += 1
+        peer.last_heard = max(peer.last_heard, self.reactor.seconds())
+        session.watchdog.start()
+        return session
+
+    @defer.inlineCallbacks
+    def _end_server(self, session, reason, tell=False):
+        """A server VM is gone (or the master stops): its spaces move to the servers with room."""
+        if session is None or session.ended:
+            return
+        session.ended = True
+        session.watchdog.stop()
+        if self.servers.get(session.name) is session:
+            del self.servers[session.name]
+        log.info("ending server %s's session: %s", session.name, reason)
+        if tell and not session.peer.closed:
+            try:
+                yield session.peer.request("disconnect", {"reason": reason}, timeout=self._quick())
+            except Exception as exc:
+                log.debug("server %s not told of its disconnection: %s", session.name, exc)
+        session.peer.close(reason)
+        yield self.spaces.remove_server(session.name, reason)
 
     # -- service space admission ------------------------------------------------------------------------
     def _queue_space(self, session, pi):
@@ -639,9 +718,11 @@ class RobotAgent(service.Service):
         self.watchdog.start()
         asked = self.reactor.seconds()
         try:
-            answer = yield peer.request("hello", {"name": self.config.name, "address": self.address,
-                                                  "robot": self.config.role == "robot", "version": VERSION},
-                                        timeout=HELLO_TIMEOUT)
+            hello = {"name": self.config.name, "address": self.address, "robot": self.config.role == "robot",
+                     "version": VERSION}
+            if self.config.role == "server":
+                hello["max_service_spaces"] = getattr(self.config, "max_service_spaces", MAX_SERVICE_SPACES)
+            answer = yield peer.request("hello", hello, timeout=HELLO_TIMEOUT)
         except ic.RemoteError as exc:
             self._problem("master %s refused hello: %s", master, exc.reason)
             peer.close("hello refused")

@@ -232,7 +232,8 @@ class Rdapi(resource.Resource):
         self._encoded = {}  # (path, query) -> (the answer object, its JSON bytes)
         self.routes = {
             "/": Route({"GET": None}),
-            "/platform_instance/read": Route({"GET": lambda q, b: platform.read()}),
+            "/platform_instance/read": Route({"GET": lambda q, b: platform.read(q.get("pi_type"))},
+                                             query={"pi_type": False}),
             "/platform_instance/provisioning": Route({"POST": lambda q, b: platform.provisioning(b)}),
             "/platform_instance/r_provisioning": Route({"POST": lambda q, b: platform.r_provisioning(b)}),
             "/service_logic/read": Route({"GET": lambda q, b: service.read(q.get("slg_name"))},

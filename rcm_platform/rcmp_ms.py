@@ -863,6 +863,10 @@ class ServiceSpace:
         self.inbound_port = None
         self.reason = None          # why it can never pair (set once; the items' errors say the rest)
         self.robot = None
+        self.logic = None           # master side: the service logic it was built from (to rebuild it elsewhere)
+        self.server = None          # master side: the name of the server hosting its S side (and ROS master)
+        self.host = None            # master side: that server's RemoteRobot, None when it is this agent
+        self.public_ip = None       # master side: the hosting server's address for service_space/read
         self.driver_link = None
         self.driver_events = []
         self.driver_waiters = []
@@ -1218,123 +1222,7 @@ class _SpaceHost:
     def _pairing_may_have_changed(self, space):
         """Hook: each side decides what a change means (master: on_state; robot: item-exited event)."""
 
-    # -- stopping -------------------------------------------------------------------------------------------
-    @defer.inlineCallbacks
-    def _stop_local(self, space):
-        """Stop the space's items here (together), then rosout, then the ROS master; forget them."""
-        procs = [i.process for i in space.items if i.process is not None]
-        yield defer.gatherResults([p.stop() for p in procs], consumeErrors=True)
-        for managed in space.core_processes():
-            yield managed.stop()
-        for managed in procs + space.core_processes():
-            self.table.forget(managed.key)
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Master side.
-
-class ServiceSpaceManager(_SpaceHost):
-    """The master's (or a server VM's) service spaces, one per connected robot. See docs/SERVICE_SPACES.md."""
-
-    key_prefix = "ss"
-
-    def __init__(self, reactor, table, config, public_ip, env=None, on_state=None, address=None, run_as=None):
-        super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
-        self.public_ip = public_ip
-        self.on_state = on_state
-        self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes
-        self.i_name = "master" if getattr(config, "role", "master") == "master" else config.name
-
-    # -- create ---------------------------------------------------------------------------------------------
-    @defer.inlineCallbacks
-    def create(self, pi_name, service_logic, robot):
-        """Build the space of robot ``pi_name``; fires with the ServiceSpace once everything settled.
-
-        The Deferred fires (never fails) when the space is paired or known not to pair (``space.reason`` and
-        the items' errors say why); a space that already exists is torn down first. Bad service logic
-        (missing fields) fails the Deferred with ValueError before anything starts.
-        """
-        ss_side = str(service_logic.get("ss_side") or "S").upper()
-        if ss_side not in ("S", "R"):
-            raise ValueError(f"ss_side must be S or R, got {service_logic.get('ss_side')!r}")
-        robot_name = getattr(robot, "name", pi_name) if robot is not None else pi_name
-        try:
-            items = [_mark_special(item) for item in items_of_logic(service_logic)]
-        except CommandError as exc:
-            raise ValueError(f"service logic of {pi_name}: {exc}") from None
-        for item in items:
-            item.i_name = self.i_name if item.side == "S" else robot_name
-        remote = [i for i in items if i.side == "R"]
-        if (remote or ss_side == "R") and robot is None:
-            raise ValueError(f"service space {pi_name} has robot-side parts but no robot to run them")
-        if pi_name in self.spaces:
-            yield self.teardown(pi_name)
-        space = ServiceSpace(pi_name, ss_side, self.key_prefix, None, self.i_name)
-        space.items = items
-        space.robot = robot
-        self.spaces[pi_name] = space
-        self._changed(space)
-        log.info("service space %s: creating (%d S items, %d R items, ROS master on the %s side)", pi_name,
-                 len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
-        try:
-            space.address = self.address
-            base = int(getattr(self.config, "ros_port_base", 11311))
-            if ss_side == "S":
-                self._spawn_master(space, base)
-                work = [self._master_ready(space),
-                        self._start_local_items(space, [i for i in items if i.side == "S"])]
-                if remote:
-                    work.append(self._start_remote(space, robot, remote, None))
-                yield defer.gatherResults(work, consumeErrors=True)
-            else:
-                yield self._start_remote(space, robot, remote, base)
-                if not space.cancelled and space.ros_master_uri:
-                    yield self._start_local_items(space, [i for i in items if i.side == "S"])
-            if not space.cancelled:
-                yield self._items_started(space)
-            yield self._core_settled(space)
-        except SpaceError as exc:
-            space.reason = str(exc)
-        except defer.FirstError as exc:
-            inner = exc.subFailure.value
-            space.reason = str(inner) if isinstance(inner, SpaceError) else f"unexpected error: {inner!r}"
-            if not isinstance(inner, SpaceError):
-                log.error("service space %s: %s", pi_name, exc.subFailure.getTraceback())
-        except Exception as exc:  # a bug: keep the space visible (and stoppable) with the reason
-            space.reason = f"unexpected error: {exc!r}"
-            log.exception("service space %s: unexpected error while creating", pi_name)
-        if not space.cancelled:
-            space.settle()
-            if space.paired:
-                self._notify(space)
-            level = logging.INFO if space.paired else logging.WARNING
-            log.log(level, "service space %s: %s", pi_name,
-                    "paired" if space.paired else f"not paired: {space.why_unpaired()}")
-        return space
-
-    @defer.inlineCallbacks
-    def _start_remote(self, space, robot, remote, start_ros_master_port):
-        try:
-            result = yield robot.start_items(space.name, space.ros_master_uri, [i.to_dict() for i in remote],
-                                             start_ros_master_port=start_ros_master_port)
-        except Exception as exc:
-            raise SpaceError(f"robot {getattr(robot, 'name', space.name)} could not start its items: {exc}")
-        if space.cancelled:
-            return
-        if result.get("reason"):
-            raise SpaceError(f"robot {getattr(robot, 'name', space.name)}: {result['reason']}")
-        if start_ros_master_port is not None:
-            space.ros_master_uri = result.get("ros_master_uri")
-            if not space.ros_master_uri:
-                raise SpaceError(f"robot {robot.name} did not start the ROS master")
-        reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
-        for item in remote:
-            item.remote = reports.get((item.kind, item.name)) or {
-                **item.report(), "state": FAILED, "error": "the robot did not report this item"}
-            item.remote.setdefault("i_name", item.i_name)
-            item.nodes = list(item.remote.get("nodes") or [])
-            item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
-
+    # -- special items' hooks -------------------------------------------------------------------------------
     @defer.inlineCallbacks
     def _items_started(self, space):
         """The special items' ``started`` hooks, in item order (rcm_driver: connect, say r_connection)."""
@@ -1377,107 +1265,10 @@ class ServiceSpaceManager(_SpaceHost):
         if space.driver_link is link:
             space.driver_link = None
 
-    # -- pairing --------------------------------------------------------------------------------------------
-    def _changed(self, space):
-        for observer in list(self.observers):
-            try:
-                observer(space.name)
-            except Exception:
-                log.exception("observer of service space %s failed", space.name)
-
-    def _pairing_may_have_changed(self, space):
-        self._changed(space)
-        if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED):
-            return
-        paired = space.pairs()
-        if paired != space.paired:
-            space.transition(SPACE_PAIRED if paired else SPACE_UNPAIRED, "its processes changed")
-            if not paired:
-                log.warning("service space %s: no longer paired: %s", space.name, space.why_unpaired())
-            self._notify(space)
-
-    def _notify(self, space):
-        if self.on_state is not None:
-            try:
-                self.on_state(space.name, space.paired, space)
-            except Exception:
-                log.exception("on_state callback for %s failed", space.name)
-
-    def item_exited(self, ss_name, report):
-        """The robot says an R item (or, kind ``ros_master``, its ROS master) of ``ss_name`` ended."""
-        space = self.spaces.get(ss_name)
-        if space is None or space.cancelled or not isinstance(report, dict):
-            return
-        if report.get("kind") == "ros_master":
-            space.reason = f"the ROS master on robot {report.get('i_name')} ended: {report.get('error')}"
-        else:
-            for item in space.items:
-                if item.remote is not None and (item.kind, item.name) == (report.get("kind"), report.get("name")):
-                    item.remote = dict(report)
-                    break
-            else:
-                log.warning("service space %s: robot reported an unknown item %r", ss_name, report)
-                return
-        log.warning("service space %s: robot reports %s %s %s: %s", ss_name, report.get("kind"),
-                    report.get("name"), report.get("state"), report.get("error"))
-        self._pairing_may_have_changed(space)
-
-    # -- teardown -------------------------------------------------------------------------------------------
-    def teardown(self, pi_name):
-        """Stop the space: R items on the robot, S items, then the ROS master. Fires when all are gone."""
-        space = self.spaces.get(pi_name)
-        if space is None:
-            return defer.succeed(None)
-        d = defer.Deferred()
-        if space.teardown_waiters is not None:
-            space.teardown_waiters.append(d)
-            return d
-        space.teardown_waiters = [d]
-        self._teardown(space)
-        return d
-
-    @defer.inlineCallbacks
-    def _teardown(self, space):
-        was_paired = space.paired
-        space.transition(SPACE_STOPPING, "teardown")
-        log.info("service space %s: tearing down", space.name)
-        try:
-            yield defer.gatherResults([defer.maybeDeferred(item.special.stopping, self, space, item)
-                                       for item in space.items if item.special is not None],
-                                      consumeErrors=True)
-            has_remote = any(i.side == "R" for i in space.items)
-            if space.ss_side == "R":
-                yield self._stop_local(space)          # S items first: the ROS master is on the robot
-            if space.robot is not None and (has_remote or space.ss_side == "R"):
-                yield self._stop_remote(space)
-            if space.ss_side == "S":
-                yield self._stop_local(space)
-        except Exception:
-            log.exception("service space %s: teardown error", space.name)
-        finally:
-            if self.spaces.get(space.name) is space:
-                del self.spaces[space.name]
-            space.transition(SPACE_GONE, "torn down")
-            log.info("service space %s: torn down", space.name)
-            if was_paired:
-                self._notify(space)
-            self._changed(space)
-            waiters, space.teardown_waiters = space.teardown_waiters, []
-            for d in waiters:
-                d.callback(None)
-
-    @defer.inlineCallbacks
-    def _stop_remote(self, space):
-        d = space.robot.stop_items(space.name)
-        timeout = self.reactor.callLater(self.robot_timeout, d.cancel)
-        try:
-            yield d
-        except Exception as exc:
-            log.warning("service space %s: robot %s did not confirm stopping its items: %s", space.name,
-                        getattr(space.robot, "name", "?"), exc)
-        finally:
-            if timeout.active():
-                timeout.cancel()
+    def _items_stopping(self, space):
+        """The special items' ``stopping`` hooks (rcm_driver: r_disconnection, e_removed awaited with FIROS)."""
+        return defer.gatherResults([defer.maybeDeferred(item.special.stopping, self, space, item)
+                                    for item in space.items if item.special is not None], consumeErrors=True)
 
     @defer.inlineCallbacks
     def _say_goodbye_to_driver(self, space):
@@ -1500,8 +1291,368 @@ class ServiceSpaceManager(_SpaceHost):
                             self.driver_goodbye_timeout)
         link.transport.loseConnection()
 
+    # -- stopping -------------------------------------------------------------------------------------------
+    @defer.inlineCallbacks
+    def _stop_local(self, space):
+        """Stop the space's items here (together), then rosout, then the ROS master; forget them."""
+        procs = [i.process for i in space.items if i.process is not None]
+        yield defer.gatherResults([p.stop() for p in procs], consumeErrors=True)
+        for managed in space.core_processes():
+            yield managed.stop()
+        for managed in procs + space.core_processes():
+            self.table.forget(managed.key)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Master side.
+
+class Server:
+    """A place for service spaces (CONTRACTS §8): the master itself (``host`` None) or a connected server VM
+    (``host``: its ``RemoteRobot``, which starts the space's ROS master and S items there)."""
+
+    def __init__(self, name, capacity, address, host=None):
+        self.name = name
+        self.capacity = int(capacity)
+        self.address = address
+        self.host = host
+
+
+def choose_server(servers, hosted):
+    """The server a new service space goes to: the lowest load (spaces hosted ÷ its ``max_service_spaces``)
+    among those below their limit; ties go to the master (the one without a host), then by name. None when no
+    server has room. ``servers``: [Server]; ``hosted``: {name: spaces hosted now}."""
+    best = None
+    for server in servers:
+        count = hosted.get(server.name, 0)
+        if server.capacity <= 0 or count >= server.capacity:
+            continue
+        key = (count / server.capacity, server.host is not None, server.name)
+        if best is None or key < best[0]:
+            best = (key, server)
+    return None if best is None else best[1]
+
+
+class ServiceSpaceManager(_SpaceHost):
+    """The master's service spaces, one per connected robot, each placed on a server (the master or a server
+    VM, ``add_server``). See docs/SERVICE_SPACES.md."""
+
+    key_prefix = "ss"
+
+    def __init__(self, reactor, table, config, public_ip, env=None, on_state=None, address=None, run_as=None):
+        super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
+        self.public_ip = public_ip
+        self.on_state = on_state
+        self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes
+        self.i_name = "master" if getattr(config, "role", "master") == "master" else config.name
+        self.name = getattr(config, "name", "master")
+        self.servers = {self.name: Server(self.name, getattr(config, "max_service_spaces", 100), public_ip)}
+        self.unplaced = collections.OrderedDict()   # pi_name -> (service logic, robot): waiting for room
+        self._placing = None
+
+    # -- servers and placement (CONTRACTS §8) --------------------------------------------------------------
+    def hosted(self):
+        """{server name: service spaces (ss_side S) it hosts now}."""
+        counts = collections.Counter()
+        for space in self.spaces.values():
+            if space.ss_side == "S" and space.server is not None:
+                counts[space.server] += 1
+        return counts
+
+    def spaces_of(self, server_name):
+        """Names of the spaces ``server_name`` hosts, in creation order."""
+        return [s.name for s in self.spaces.values() if s.server == server_name]
+
+    def add_server(self, name, host, capacity, address):
+        """A server VM joined: it takes new spaces from now on (nothing moves to it); waiting spaces are placed."""
+        self.servers[name] = Server(name, capacity, address, host)
+        log.info("server %s (%s) joined: it hosts up to %d service spaces", name, address, capacity)
+        self._place_waiting_soon()
+
+    def remove_server(self, name, why):
+        """A server VM is lost (or leaving): its spaces are torn down (their robots' R items too) and created again
+        on the servers with room; the rest wait for room. Fires when each was rebuilt or put in line."""
+        if self.servers.get(name) is None or name == self.name:
+            return defer.succeed(None)
+        del self.servers[name]
+        lost = [self.spaces[n] for n in self.spaces_of(name)]
+        log.warning("server %s lost (%s): moving its %d service space(s): %s", name, why, len(lost),
+                    ", ".join(s.name for s in lost) or "none")
+        for space in lost:
+            space.reason = f"its server {name} was lost ({why}); it is being moved"
+            self._pairing_may_have_changed(space)
+        return defer.gatherResults([self._move(space) for space in lost], consumeErrors=True)
+
+    @defer.inlineCallbacks
+    def _move(self, space):
+        yield self.teardown(space.name)
+        if getattr(space.robot, "ended", False) or space.name in self.spaces or space.name in self.unplaced:
+            return                                          # the robot left meanwhile, or was already rebuilt
+        yield self.create(space.name, space.logic, space.robot)
+
+    def _place_waiting_soon(self):
+        if self.unplaced and self._placing is None:
+            self._placing = self.reactor.callLater(0, self._place_waiting)
+
+    def _place_waiting(self):
+        """Build the spaces waiting for room, in arrival order, while a server has room."""
+        self._placing = None
+        while self.unplaced and choose_server(self.servers.values(), self.hosted()) is not None:
+            name, (logic, robot) = self.unplaced.popitem(last=False)
+            d = self.create(name, logic, robot)
+            d.addErrback(lambda f, name=name: log.error("service space %s not created: %s", name,
+                                                        f.getErrorMessage()))
+
+    def waiting_reason(self, ss_name):
+        """Why ``ss_name`` waits for room (a sentence), or None when it does not."""
+        if ss_name not in self.unplaced:
+            return None
+        hosted = self.hosted()
+        limits = ", ".join(f"{s.name} {hosted.get(s.name, 0)}/{s.capacity}" for s in self.servers.values())
+        place = list(self.unplaced).index(ss_name) + 1
+        return (f"waiting for room: every server hosts as many service spaces as its max_service_spaces allows "
+                f"({limits}); number {place} in line")
+
+    def server_rows(self, master_address):
+        """The ``platform_instance/read?pi_type=S`` rows: the master first, then the server VMs by name."""
+        rows = []
+        master = self.servers[self.name]
+        others = sorted((s for s in self.servers.values() if s.host is not None), key=lambda s: s.name)
+        for server in [master] + others:
+            rows.append({"pi_name": server.name, "pi_type": "S", "connected": True,
+                         "address": master_address if server is master else server.address,
+                         "max_service_spaces": server.capacity, "service_spaces": self.spaces_of(server.name)})
+        return rows
+
+    # -- create ---------------------------------------------------------------------------------------------
+    @defer.inlineCallbacks
+    def create(self, pi_name, service_logic, robot):
+        """Build the space of robot ``pi_name``; fires with the ServiceSpace once everything settled.
+
+        The Deferred fires (never fails) when the space is paired or known not to pair (``space.reason`` and
+        the items' errors say why); a space that already exists is torn down first. Bad service logic
+        (missing fields) fails the Deferred with ValueError before anything starts. A space whose ROS master
+        runs on the server side (``ss_side`` S) is placed on the server with the lowest load
+        (``choose_server``); with no room anywhere it waits in line (``waiting_reason``) and the Deferred
+        fires with None.
+        """
+        ss_side = str(service_logic.get("ss_side") or "S").upper()
+        if ss_side not in ("S", "R"):
+            raise ValueError(f"ss_side must be S or R, got {service_logic.get('ss_side')!r}")
+        robot_name = getattr(robot, "name", pi_name) if robot is not None else pi_name
+        try:
+            items = [_mark_special(item) for item in items_of_logic(service_logic)]
+        except CommandError as exc:
+            raise ValueError(f"service logic of {pi_name}: {exc}") from None
+        remote = [i for i in items if i.side == "R"]
+        if (remote or ss_side == "R") and robot is None:
+            raise ValueError(f"service space {pi_name} has robot-side parts but no robot to run them")
+        if pi_name in self.spaces:
+            yield self.teardown(pi_name)
+        self.unplaced.pop(pi_name, None)
+        server = self.servers[self.name]
+        if ss_side == "S":
+            server = choose_server(self.servers.values(), self.hosted())
+            if server is None:
+                self.unplaced[pi_name] = (service_logic, robot)
+                log.warning("service space %s: %s", pi_name, self.waiting_reason(pi_name))
+                self._changed_name(pi_name)
+                return None
+        s_name = self.i_name if server.host is None else server.name
+        for item in items:
+            item.i_name = s_name if item.side == "S" else robot_name
+        space = ServiceSpace(pi_name, ss_side, self.key_prefix, None, s_name)
+        space.items = items
+        space.robot = robot
+        space.logic = service_logic
+        space.server, space.host = server.name, server.host
+        space.public_ip = self.public_ip if server.host is None else server.address
+        self.spaces[pi_name] = space
+        self._changed(space)
+        log.info("service space %s: creating on %s (%d S items, %d R items, ROS master on the %s side)", pi_name,
+                 server.name, len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
+        try:
+            base = int(getattr(self.config, "ros_port_base", 11311))
+            local = [i for i in items if i.side == "S"]
+            if ss_side == "S" and space.host is not None:
+                # the server starts the ROS master (from its own ros_port_base) and the S items; then the robot
+                yield self._start_remote(space, space.host, local, base)
+                if remote and not space.cancelled and space.ros_master_uri:
+                    yield self._start_remote(space, robot, remote, None)
+            elif ss_side == "S":
+                space.address = self.address
+                self._spawn_master(space, base)
+                work = [self._master_ready(space), self._start_local_items(space, local)]
+                if remote:
+                    work.append(self._start_remote(space, robot, remote, None))
+                yield defer.gatherResults(work, consumeErrors=True)
+            else:
+                space.address = self.address
+                yield self._start_remote(space, robot, remote, base)
+                if not space.cancelled and space.ros_master_uri:
+                    yield self._start_local_items(space, local)
+            if not space.cancelled:
+                yield self._items_started(space)
+            yield self._core_settled(space)
+        except SpaceError as exc:
+            space.reason = str(exc)
+        except defer.FirstError as exc:
+            inner = exc.subFailure.value
+            space.reason = str(inner) if isinstance(inner, SpaceError) else f"unexpected error: {inner!r}"
+            if not isinstance(inner, SpaceError):
+                log.error("service space %s: %s", pi_name, exc.subFailure.getTraceback())
+        except Exception as exc:  # a bug: keep the space visible (and stoppable) with the reason
+            space.reason = f"unexpected error: {exc!r}"
+            log.exception("service space %s: unexpected error while creating", pi_name)
+        if not space.cancelled:
+            space.settle()
+            if space.paired:
+                self._notify(space)
+            level = logging.INFO if space.paired else logging.WARNING
+            log.log(level, "service space %s: %s", pi_name,
+                    "paired" if space.paired else f"not paired: {space.why_unpaired()}")
+        return space
+
+    @defer.inlineCallbacks
+    def _start_remote(self, space, robot, remote, start_ros_master_port):
+        """Start ``remote`` items on ``robot`` (a robot, or the server hosting the space; with
+        ``start_ros_master_port`` it starts the space's ROS master too)."""
+        who = getattr(robot, "name", space.name)
+        what = "robot" if robot is space.robot else "server"
+        try:
+            result = yield robot.start_items(space.name, space.ros_master_uri, [i.to_dict() for i in remote],
+                                             start_ros_master_port=start_ros_master_port)
+        except Exception as exc:
+            raise SpaceError(f"{what} {who} could not start its items: {exc}")
+        if space.cancelled:
+            return
+        if result.get("reason"):
+            raise SpaceError(f"{what} {who}: {result['reason']}")
+        if start_ros_master_port is not None:
+            space.ros_master_uri = result.get("ros_master_uri")
+            if not space.ros_master_uri:
+                raise SpaceError(f"{what} {who} did not start the ROS master")
+        if result.get("inbound_port"):
+            space.inbound_port = result["inbound_port"]
+        reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
+        for item in remote:
+            item.remote = reports.get((item.kind, item.name)) or {
+                **item.report(), "state": FAILED, "error": f"the {what} did not report this item"}
+            item.remote.setdefault("i_name", item.i_name)
+            item.nodes = list(item.remote.get("nodes") or [])
+            item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
+
+    # -- pairing --------------------------------------------------------------------------------------------
+    def _changed(self, space):
+        self._changed_name(space.name)
+
+    def _changed_name(self, ss_name):
+        for observer in list(self.observers):
+            try:
+                observer(ss_name)
+            except Exception:
+                log.exception("observer of service space %s failed", ss_name)
+
+    def _pairing_may_have_changed(self, space):
+        self._changed(space)
+        if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED):
+            return
+        paired = space.pairs()
+        if paired != space.paired:
+            space.transition(SPACE_PAIRED if paired else SPACE_UNPAIRED, "its processes changed")
+            if not paired:
+                log.warning("service space %s: no longer paired: %s", space.name, space.why_unpaired())
+            self._notify(space)
+
+    def _notify(self, space):
+        if self.on_state is not None:
+            try:
+                self.on_state(space.name, space.paired, space)
+            except Exception:
+                log.exception("on_state callback for %s failed", space.name)
+
+    def item_exited(self, ss_name, report):
+        """The robot (or the server hosting the space) says an item (or, kind ``ros_master``, its ROS master)
+        of ``ss_name`` ended."""
+        space = self.spaces.get(ss_name)
+        if space is None or space.cancelled or not isinstance(report, dict):
+            return
+        if report.get("kind") == "ros_master":
+            space.reason = f"the ROS master on {report.get('i_name')} ended: {report.get('error')}"
+        else:
+            for item in space.items:
+                if item.remote is not None and (item.kind, item.name) == (report.get("kind"), report.get("name")):
+                    item.remote = dict(report)
+                    break
+            else:
+                log.warning("service space %s: an unknown item was reported %r", ss_name, report)
+                return
+        log.warning("service space %s: %s reports %s %s %s: %s", ss_name, report.get("i_name"), report.get("kind"),
+                    report.get("name"), report.get("state"), report.get("error"))
+        self._pairing_may_have_changed(space)
+
+    # -- teardown -------------------------------------------------------------------------------------------
+    def teardown(self, pi_name):
+        """Stop the space: R items on the robot, S items, then the ROS master. Fires when all are gone."""
+        if self.unplaced.pop(pi_name, None) is not None:
+            log.info("service space %s: no longer waiting for room", pi_name)
+        space = self.spaces.get(pi_name)
+        if space is None:
+            return defer.succeed(None)
+        d = defer.Deferred()
+        if space.teardown_waiters is not None:
+            space.teardown_waiters.append(d)
+            return d
+        space.teardown_waiters = [d]
+        self._teardown(space)
+        return d
+
+    @defer.inlineCallbacks
+    def _teardown(self, space):
+        was_paired = space.paired
+        space.transition(SPACE_STOPPING, "teardown")
+        log.info("service space %s: tearing down", space.name)
+        try:
+            yield self._items_stopping(space)
+            has_remote = any(i.side == "R" for i in space.items)
+            if space.ss_side == "R":
+                yield self._stop_local(space)          # S items first: the ROS master is on the robot
+            if space.robot is not None and (has_remote or space.ss_side == "R"):
+                yield self._stop_remote(space, space.robot)
+            if space.ss_side == "S" and space.host is not None:
+                yield self._stop_remote(space, space.host)
+            elif space.ss_side == "S":
+                yield self._stop_local(space)
+        except Exception:
+            log.exception("service space %s: teardown error", space.name)
+        finally:
+            if self.spaces.get(space.name) is space:
+                del self.spaces[space.name]
+            space.transition(SPACE_GONE, "torn down")
+            log.info("service space %s: torn down", space.name)
+            if was_paired:
+                self._notify(space)
+            self._changed(space)
+            waiters, space.teardown_waiters = space.teardown_waiters, []
+            for d in waiters:
+                d.callback(None)
+            self._place_waiting_soon()                 # its room goes to the next in line
+
+    @defer.inlineCallbacks
+    def _stop_remote(self, space, host):
+        d = host.stop_items(space.name)
+        timeout = self.reactor.callLater(self.robot_timeout, d.cancel)
+        try:
+            yield d
+        except Exception as exc:
+            log.warning("service space %s: %s did not confirm stopping its items: %s", space.name,
+                        getattr(host, "name", "?"), exc)
+        finally:
+            if timeout.active():
+                timeout.cancel()
+
     @defer.inlineCallbacks
     def teardown_all(self):
+        self.unplaced.clear()
         yield defer.gatherResults([self.teardown(name) for name in list(self.spaces)], consumeErrors=True)
 
 
@@ -1509,7 +1660,9 @@ class ServiceSpaceManager(_SpaceHost):
 # Robot side.
 
 class RobotSideRunner(_SpaceHost):
-    """The robot's part of its service spaces: R items (and the ROS master for ``ss_side`` R)."""
+    """The robot's part of its service spaces: R items (and the ROS master for ``ss_side`` R); on a server VM
+    (``config.role`` "server"), the S side of the spaces the master placed there: their ROS master, started from
+    the server's own ``ros_port_base``, and S items (FIROS takes the server's ``inbound_open_ports``)."""
 
     key_prefix = "robot"
 
@@ -1526,9 +1679,9 @@ class RobotSideRunner(_SpaceHost):
         valid service item fails the Deferred with the sentence naming it (nothing starts)."""
         parsed = []
         for index, entry in enumerate(items or []):
-            item = _mark_special(ServiceItem.from_entry(entry, self.i_name, index))
-            item.side = "R"
-            parsed.append(item)
+            parsed.append(_mark_special(ServiceItem.from_entry(entry, self.i_name, index)))
+        if start_ros_master_port and getattr(self.config, "role", None) == "server":
+            start_ros_master_port = int(getattr(self.config, "ros_port_base", 11311))  # the server's own
         if ss_name in self.spaces:
             yield self.stop_items(ss_name)
         space = ServiceSpace(ss_name, "R" if start_ros_master_port else "S", self.key_prefix, None,
@@ -1551,6 +1704,8 @@ class RobotSideRunner(_SpaceHost):
                 if isinstance(exc.subFailure.value, SpaceError):
                     raise exc.subFailure.value
                 raise
+            if not space.cancelled:
+                yield self._items_started(space)
             yield self._core_settled(space)
         except SpaceError as exc:
             space.reason = str(exc)
@@ -1560,7 +1715,7 @@ class RobotSideRunner(_SpaceHost):
         space.settle()
         space.told.update((i.kind, i.name) for i in parsed if i.state == FAILED)
         return {"ros_master_uri": space.ros_master_uri, "items": [i.report() for i in parsed],
-                "reason": space.reason}
+                "reason": space.reason, "inbound_port": space.inbound_port}
 
     def _pairing_may_have_changed(self, space):
         if space.state not in (SPACE_PAIRED, SPACE_UNPAIRED) or self.on_item_exited is None:
@@ -1587,8 +1742,12 @@ class RobotSideRunner(_SpaceHost):
         space = self.spaces.pop(ss_name, None)
         if space is None:
             return
-        log.info("service space %s: stopping the robot-side items", ss_name)
+        log.info("service space %s: stopping the items here", ss_name)
         space.transition(SPACE_STOPPING, "the master asked")
+        try:
+            yield self._items_stopping(space)
+        except Exception:
+            log.exception("service space %s: the special items' stop hooks failed", ss_name)
         yield self._stop_local(space)
         space.transition(SPACE_GONE, "stopped")
 

@@ -77,6 +77,7 @@ class Config:
     max_starting_spaces: int | None = None       # (ext) service spaces the master builds at once (None: 2 per core)
     ic_max_connections: int | None = None        # (ext) agent-port connections (None: a quarter of the fd limit)
     ic_max_per_address: int | None = None        # (ext) agent-port connections from one address (None: 8)
+    max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
 
 
 # -- configuration ----------------------------------------------------------------------------------------------
@@ -208,6 +209,7 @@ KEYS = {
     "rdapi_tls_key": (_parse_path, ("master",)),
     "allowed_origins": (_parse_origins, ("master",)),
     "max_starting_spaces": (_int_parser(1, 1000), ("master",)),
+    "max_service_spaces": (_int_parser(0, 100000), ("master", "server")),
     "ic_max_connections": (_int_parser(1, 100000), ("master",)),
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
     "run_as": (_parse_user, ("master", "robot", "server")),

@@ -8,11 +8,12 @@ down. Reads are answered from a ``ReadCache`` while the robotics data has not ch
 
 from twisted.internet import defer, threads
 
-from .rcmp_command import command, ReadCache, require_fields, validate_name
+from .rcmp_command import BadRequest, command, ReadCache, require_fields, validate_name
 
 
 class PlatformCommands:
-    """``data``: RoboticsData; ``robots``: object with ``disconnect(pi_name, reason) -> Deferred`` or None."""
+    """``data``: RoboticsData; ``robots``: the master runtime (``remove(pi_name, reason, remove)``, and for the
+    reads of CONTRACTS §8 ``server_rows()`` and ``server_of(pi_name)``) or None."""
 
     def __init__(self, data, robots=None):
         self.data = data
@@ -20,15 +21,33 @@ class PlatformCommands:
         self.cache = ReadCache(data)
 
     @command
-    def read(self):
-        """The list of provisioned robots (master excluded)."""
+    def read(self, pi_type=None):
+        """The provisioned robots (master excluded), with (ext) the ``server`` hosting a robot's service space (when it
+        has one); with
+        ``pi_type`` S the servers instead: the master first, then the connected server VMs (CONTRACTS §8)."""
+        if pi_type not in (None, "R", "S"):
+            raise BadRequest(f"'pi_type' must be \"R\" (robots) or \"S\" (servers), not {pi_type[:40]!r}")
+        if pi_type == "S":
+            return defer.succeed(self.robots.server_rows() if self.robots is not None else [])
         cached = self.cache.get("platform_instances")
         if cached is not None:
-            return defer.succeed(cached)
-        generation = self.data.generation
-        d = threads.deferToThread(self.data.platform_instances)
-        d.addCallback(lambda rows: self.cache.put("platform_instances", generation, rows))
-        return d
+            d = defer.succeed(cached)
+        else:
+            generation = self.data.generation
+            d = threads.deferToThread(self.data.platform_instances)
+            d.addCallback(lambda rows: self.cache.put("platform_instances", generation, rows))
+        return d.addCallback(self._with_servers)
+
+    def _with_servers(self, rows):
+        server_of = getattr(self.robots, "server_of", None)
+        if server_of is None:
+            return rows
+        rows = list(rows)
+        for index, row in enumerate(rows):
+            server = server_of(row["pi_name"])
+            if server is not None:          # only robots with a service space have a server
+                rows[index] = dict(row, server=server)
+        return rows
 
     @command
     def provisioning(self, body):

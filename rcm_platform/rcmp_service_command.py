@@ -22,11 +22,17 @@ def describe_waiting(place, limit, public_ip):
 
 
 def describe(host, ss_name):
-    """The ``service_space/read`` payload (CONTRACTS §2) of ``ss_name`` on ``host`` (a ServiceSpaceManager:
-    ``spaces`` by name and ``public_ip``), or None when there is no such space."""
+    """The ``service_space/read`` payload (CONTRACTS §2, §8) of ``ss_name`` on ``host`` (a ServiceSpaceManager:
+    ``spaces`` by name, ``public_ip``, optionally ``waiting_reason(ss_name)`` for a space waiting for room), or None
+    when there is no such space. ``public_ip`` and ``server`` are those of the server hosting the space."""
     space = host.spaces.get(ss_name)
     if space is None:
-        return None
+        waiting = getattr(host, "waiting_reason", None)
+        reason = waiting(ss_name) if waiting is not None else None
+        if reason is None:
+            return None
+        return {"r_nodes": [], "r_launchers": [], "public_ip": None, "inbound_port": None, "ros_master_uri": None,
+                "paired": False, "waiting": True, "server": None, "reason": reason}
     r_nodes, r_launchers = [], []
     for item in space.items:
         state, error = item.state, item.current_error
@@ -46,9 +52,12 @@ def describe(host, ss_name):
             package, node_type = item.node_types.get(node, (item.package, ""))
             r_nodes.append({"sn_package": package, "sn_type": node_type, "sn_name": node,
                             "i_name": item.i_name, "state": state, "launcher": item.name})
-    payload = {"r_nodes": r_nodes, "r_launchers": r_launchers, "public_ip": host.public_ip,
+    payload = {"r_nodes": r_nodes, "r_launchers": r_launchers,
+               "public_ip": getattr(space, "public_ip", None) or host.public_ip,
                "inbound_port": space.inbound_port, "ros_master_uri": space.ros_master_uri,
                "paired": space.paired}
+    if getattr(space, "server", None) is not None:
+        payload["server"] = space.server
     if not space.paired and not space.creating:
         payload["reason"] = space.why_unpaired()
     if space.driver_events:

@@ -288,14 +288,21 @@ def test_ss_side_r_puts_the_ros_master_on_the_robot(platform):
     finish(platform)
 
 
-def test_a_server_vm_agent_connects_and_pairs_like_a_robot(platform):
+def test_a_server_vm_joins_by_itself_and_a_robots_name_is_refused(platform):
+    """CONTRACTS §8: a robot=no agent needs no provisioning; a name provisioned as a robot cannot be a server."""
     platform.master.start()
     platform.provision_logic("vm_logic", sn_list=[node("vm_worker", "R", "vm_chatter")])
-    platform.provision_robot("vm1", "vm_logic")
+    platform.provision_robot("robot1", "vm_logic")
+    impostor = platform.robot("robot1", "127.0.0.5", role="server").start()
+    wait_until(lambda: "provisioned as a robot" in impostor.log_text(), message="the server's hello refused")
+    impostor.stop()
     vm = platform.robot("vm1", "127.0.0.4", role="server").start()
-    platform.wait_state("vm1", True, True)
-    wait_until(lambda: "/vm_chatter" in published_topics(platform, "vm1"))
-    assert "as vm1 (127.0.0.4)" in vm.log_text()
+    wait_until(lambda: "as vm1 (127.0.0.4)" in vm.log_text(), message="the server VM to join")
+    status, answer = platform.master.get("/platform_instance/read?pi_type=S")
+    assert status == 200, answer
+    assert [(row["pi_name"], row["connected"], row["address"]) for row in answer["reason"]] == [
+        ("master", True, "127.0.0.1"), ("vm1", True, "127.0.0.4")]
+    assert "vm1" not in platform.instances()            # a server is no provisioned robot
     finish(platform)
 
 
