@@ -7,6 +7,7 @@ node (on the chosen server) and an R node (on the robot). Every test ends with n
 """
 
 import os
+import signal
 import time
 
 import pytest
@@ -106,6 +107,7 @@ def _registered(master, node):
         return None
 
 
+@pytest.mark.slow
 def test_spaces_are_placed_by_load_on_the_master_and_two_server_vms(make_platform):
     plat = make_platform(1)
     plat.master.start()
@@ -221,3 +223,32 @@ def test_sigterm_on_a_server_vm_hands_its_spaces_over(make_platform):
     wait_until(lambda: plat.instances()["r2"].get("server") == "master", message="r2 moved to the master")
     check_placed_on(plat, "r2", "master")
     assert leftovers_of(plat, "vm1") == []
+
+
+@pytest.mark.slow
+def test_a_server_vm_cut_off_loses_its_spaces_and_stops_what_it_ran_for_them(make_platform):
+    """Heartbeats, not a closed connection: the server's agent is frozen (SIGSTOP), so its ROS processes live on
+    and nothing closes its connection. The master declares it lost after 3 heartbeats and moves its space; the
+    server, once it runs again, finds the master gone and stops every process of that space."""
+    plat = make_platform(2)
+    plat.master.start()
+    plat.provision_logic("two_sides", **LOGIC)
+    vm1 = start_server(plat, "vm1", 2)
+    start_robot(plat, "r1", 1)
+    check_placed_on(plat, "r1", "master")
+    start_robot(plat, "r2", 2)
+    check_placed_on(plat, "r2", "vm1")
+    agent = vm1.process.pid
+    os.kill(agent, signal.SIGSTOP)
+    try:
+        wait_until(lambda: plat.instances()["r2"].get("server") == "master" and plat.instances()["r2"]["paired"],
+                   timeout=3 * HEARTBEAT + 30, message="r2 paired again on the master")
+        assert "vm1" not in servers(plat)
+        assert [p for p in leftovers_of(plat, "vm1") if p[0] != agent], "the frozen server's processes"
+    finally:
+        os.kill(agent, signal.SIGCONT)
+    wait_until(lambda: not [p for p in leftovers_of(plat, "vm1") if p[0] != agent], timeout=30,
+               message="the server to stop the processes of the space it lost")
+    check_placed_on(plat, "r2", "master")
+    wait_until(lambda: "vm1" in servers(plat), timeout=30, message="vm1 to join again")
+    assert servers(plat)["vm1"]["service_spaces"] == []
