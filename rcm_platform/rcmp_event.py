@@ -18,6 +18,7 @@ import os
 
 from twisted.application import service
 from twisted.internet import defer, threads
+from twisted.python import failure
 
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
@@ -215,6 +216,7 @@ class MasterAgent(service.Service):
         # remove(), under the robot's lock, like the hello's check) takes its name out first
         self._provisioned = {}
         self._removals = 0
+        self._refreshing = None      # callers waiting for the read in flight, or None
         self.listening = None
         self.address = None
         self._address_call = None
@@ -233,15 +235,42 @@ class MasterAgent(service.Service):
             self._address_call = self.reactor.callLater(ADDRESS_POLL, self._wait_for_address)
 
     def _preload_provisioning(self):
+        d = self._refresh_provisioning()
+        d.addErrback(lambda f: log.warning("provisioned robots not preloaded: %s", f.getErrorMessage()))
+
+    def _refresh_provisioning(self):
+        """Read every provisioned robot in one query (in a thread) into ``_provisioned``; fires with the rows.
+
+        Concurrent callers share one read: a fleet arriving together costs one query, not one per robot. The
+        rows go into the cache only if no removal happened meanwhile (a removed robot must not come back);
+        the caller, holding its robot's lock, may use its own row either way (it cannot have been removed)."""
+        if self._refreshing is not None:
+            waiter = defer.Deferred()
+            self._refreshing.append(waiter)
+            return waiter
+        self._refreshing = waiters = []
         removals = self._removals
 
-        def fill(rows):
-            if self._removals == removals:      # no removal meanwhile: the snapshot is still true
-                for row in rows:
+        def done(result):
+            self._refreshing = None
+            if not isinstance(result, failure.Failure) and self._removals == removals:
+                for row in result:
                     self._provisioned.setdefault(row["pi_name"], {"pi_name": row["pi_name"],
                                                                   "service_logic": row["service_logic"]})
-        d = threads.deferToThread(self.data.platform_instances)
-        d.addCallbacks(fill, lambda f: log.warning("provisioned robots not preloaded: %s", f.getErrorMessage()))
+            for waiter in waiters:
+                waiter.callback(result) if not isinstance(result, failure.Failure) else waiter.errback(result)
+            return result
+        return threads.deferToThread(self.data.platform_instances).addBoth(done)
+
+    @defer.inlineCallbacks
+    def _provisioning_of(self, name):
+        """``{"pi_name", "service_logic"}`` of a provisioned ``name`` or None; call under ``name``'s lock."""
+        pi = self._provisioned.get(name)
+        if pi is None:
+            rows = yield self._refresh_provisioning()
+            row = next((r for r in rows if r["pi_name"] == name), None)
+            pi = None if row is None else {"pi_name": name, "service_logic": row["service_logic"]}
+        return pi
 
     def _wait_for_address(self):
         self._address_call = None
@@ -450,11 +479,7 @@ class MasterAgent(service.Service):
     def _admit(self, peer, name, robot):
         """Under ``name``'s lock: its provisioning, the takeover rule, then the new session; the provisioning row
         (None when the connection closed meanwhile)."""
-        pi = self._provisioned.get(name)
-        if pi is None:
-            pi = yield threads.deferToThread(self.data.platform_instance, name)
-            if pi is not None:
-                self._provisioned[name] = {"pi_name": name, "service_logic": pi["service_logic"]}
+        pi = yield self._provisioning_of(name)
         if pi is None:
             self._log_refusal("refused hello from %s (%s): not provisioned", name, peer.remote)
             raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
