@@ -33,6 +33,7 @@ USER_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 ROOT_ENV = {"PATH": USER_PATH, "HOME": "/root", "LANG": "C", "USER": "root", "LOGNAME": "root"}
 VPN_SUBNET = "198.51.100.0/24"
 PY = "/usr/bin/python3"
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def curl(host, url, body=None, timeout=5):
@@ -271,3 +272,73 @@ def test_root_daemon_keeps_away_from_a_user_owned_workspace(lan, tmp_path):
         assert service(host, "start").returncode == 0, log_tail(host)
     finally:
         stop_daemons(host)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+ROBOT_AGENT_ENV = {"PATH": USER_PATH, "HOME": "/root", "LANG": "C", "PYTHONPATH": ROOT}
+
+
+def space_processes(host, owner_uid):
+    """argv of the processes in ``host`` running as ``owner_uid`` (the service space's, on a master)."""
+    found = []
+    for pid in host.pids():
+        try:
+            with open(f"/proc/{pid}/status") as f:
+                uid = next(int(line.split()[1]) for line in f if line.startswith("Uid:"))
+            with open(f"/proc/{pid}/cmdline", "rb") as f:
+                argv = [a.decode("utf-8", "replace") for a in f.read().split(b"\0") if a]
+        except (OSError, StopIteration):
+            continue
+        if uid == owner_uid:
+            found.append(argv)
+    return found
+
+
+def test_fiware_items_of_a_user_owned_workspace_run_as_its_owner_with_its_code(lan, tmp_path):
+    """robotics.zip (FIROS, rcm_driver, robotics_msgs built into alice's workspace) on a master host; a robot
+    pairs with fiware_base: FIROS and rcm_driver run as alice, and FIROS imports robotics_msgs from her
+    workspace (its code paths reach her children only). The root agent itself never ran her code."""
+    master = lan.add_host("master", private=HOST_PATHS)
+    robot = lan.add_host("robot")
+    pkg = build_zip(tmp_path)  # robotics.zip
+    master.run(["useradd", "-m", "-s", "/bin/bash", "alice"])
+    uid = int(master.run(["id", "-u", "alice"]).stdout)
+    ws = "/home/alice/rcmp_ws"
+    try:
+        master.run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--no-vpn", "--fiware", "yes",
+                    "--vpn-address", master.address, "--workspace", ws], env=ROOT_ENV, cwd=pkg, timeout=600)
+        master.run(["chown", "-R", "alice:alice", ws])
+        assert service(master, "start").returncode == 0, log_tail(master)
+        base = f"http://{master.address}"
+        wait_until(lambda: curl(master, base + "/")[0] == 200, timeout=60, message=f"the RDAPI\n{log_tail(master)}")
+        log = master.run(["cat", "/opt/rcm-platform/log/rcmp.log"]).stdout
+        assert f"workspace {ws} (owner uid {uid}): not root's" in log
+        status, reply = curl(master, base + "/platform_instance/provisioning",
+                             {"pi_name": "robot1", "pi_service_logic": "fiware_base"})
+        assert (status, reply["result"]) == (200, "OK"), reply
+
+        home = tmp_path / "robot-home"
+        home.mkdir()
+        (home / "init.cfg").write_text(f"[main]\nname=robot1\nrobot=yes\nip_master={master.address}\n"
+                                       f"vpn_address={robot.address}\n")
+        robot.start([PY, "-m", "rcm_platform", "--home", home], env=ROBOT_AGENT_ENV, name="robot-agent")
+
+        def space():
+            status, reply = curl(master, base + "/service_space/read?ss_name=robot1")
+            return reply.get("reason") if status == 200 and isinstance(reply, dict) else None
+
+        try:
+            wait_until(lambda: (space() or {}).get("paired"), timeout=120, message="robot1 paired with fiware_base")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: {space()}\n{log_tail(master)}") from None
+        argvs = space_processes(master, uid)
+        assert any("core.py" in " ".join(a) and "firos" in " ".join(a) for a in argvs), argvs
+        assert any("rcm_driver.py" in " ".join(a) for a in argvs), argvs
+        assert any("rosmaster" in " ".join(a) for a in argvs), argvs  # the space's own ROS master too
+        # nothing of the space runs as root: root's processes in the host are the agent and the holder only
+        root_argvs = space_processes(master, 0)
+        assert not [a for a in root_argvs if any(w in " ".join(a) for w in ("firos", "rcm_driver", "rosmaster"))]
+    finally:
+        lan.procs.stop_all()
+        stop_daemons(master)
