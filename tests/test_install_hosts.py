@@ -10,6 +10,8 @@ is stopped and every namespace removed at the end, even when a test fails.
 - The root daemon and a user-owned workspace, as that user would attack it (issue 12 row 14): rcmpd sources
   nothing of the workspace, runs its setup script only as its owner, refuses settings, program or package files
   others can change; the agent's umask is 027, its data and logs not world-readable, its fd limit raised.
+- robotics.zip with a user-owned workspace: the FIWARE items of a paired robot's service space run as the
+  workspace's owner, with the workspace's code paths (issue 12 ``run_as``, end to end from rcmpd).
 """
 
 import json
