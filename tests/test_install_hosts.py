@@ -156,6 +156,13 @@ def test_master_and_robot_zips_installed_in_two_hosts_pair_over_the_platforms_vp
         master_tun = master.run(["ip", "-o", "-4", "addr", "show", "dev", "tun0"]).stdout
         assert " inet 198.51.100.1/24" in master_tun
 
+        # the master's daemon restarted (its VPN folder now holds OpenVPN's runtime files): robot1 pairs again
+        assert service(master, "restart").returncode == 0, log_tail(master)
+        try:
+            wait_until(lambda: (robot_row() or {}).get("paired"), timeout=90, message="robot1 to pair again")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; robot1: {robot_row()}\n{log_tail(master)}\n{log_tail(robot)}") from None
+
         # -- the robot leaves: uninstall.sh removes its VPN and stops its OpenVPN -----------------------------------
         out = robot.run([robot_pkg / "uninstall.sh"], env=ROOT_ENV, cwd=robot_pkg, timeout=300).stdout
         assert "Removed the platform's VPN" in out
