@@ -177,6 +177,8 @@ class Console:
         self._detail_loop = None
         self._listener = None
         self._waiting = []          # Deferreds of next_snapshot()
+        self._remote_tails = {}     # ss_name -> {item name: tail} the robot sent last
+        self._asking = set()        # ss_names whose robot is being asked for its tails
 
     # -- hooks ------------------------------------------------------------------------------------------
     def start(self):
@@ -188,7 +190,7 @@ class Console:
         self._heartbeat = task.LoopingCall(self._beat)
         self._heartbeat.clock = self.reactor
         self._heartbeat.start(self.heartbeat, now=False)
-        self._detail_loop = task.LoopingCall(self._refresh_details)
+        self._detail_loop = task.LoopingCall(lambda: (self._refresh_details(), self._ask_robots()))
         self._detail_loop.clock = self.reactor
         self._detail_loop.start(self.detail_refresh, now=False)
         self._listener = self.reactor.listenTCP(0, _WatcherFactory(self), interface="127.0.0.1")
@@ -332,25 +334,50 @@ class Console:
 
     # -- details: log tails of the spaces pages look at -------------------------------------------------
     def detail(self, ss_name):
-        """Every item of ``ss_name`` run by this agent with its log tail; items run elsewhere say where."""
+        """Every item of ``ss_name`` with its log tail: this agent's from its process, the robot's as the robot
+        last sent them (``item_tails``); an item whose tail is not known yet says only where it runs."""
         space = getattr(self.spaces, "spaces", {}).get(ss_name)
         if space is None:
             return None
+        remote = self._remote_tails.get(ss_name, {})
         items = []
         for item in space.items:
             entry = {"kind": item.kind, "name": item.name, "i_name": item.i_name, "side": item.side}
             process = getattr(item, "process", None)
             if process is not None:
                 entry["tail"] = process.tail(TAIL_LINES)
-                entry["log"] = os.path.basename(process.log_path)
+            elif isinstance(remote.get(item.name), str):
+                entry["tail"] = remote[item.name]
             items.append(entry)
         return {"ss_name": ss_name, "items": items}
+
+    def _ask_robot(self, ss_name):
+        """Ask the robot of ``ss_name`` for its items' log tails (one request at a time per space)."""
+        space = getattr(self.spaces, "spaces", {}).get(ss_name)
+        robot = getattr(space, "robot", None)
+        if ss_name in self._asking or not hasattr(robot, "item_tails") or \
+                not any(getattr(i, "process", None) is None for i in space.items):
+            return
+        self._asking.add(ss_name)
+
+        def got(tails):
+            self._remote_tails[ss_name] = {str(k): str(v) for k, v in (tails or {}).items()}
+            if ss_name in self.details:
+                self._refresh_details()
+
+        d = robot.item_tails(ss_name, TAIL_LINES)
+        d.addCallbacks(got, lambda failure: log.debug("console: no log tails from %s: %s", ss_name,
+                                                      failure.getErrorMessage()))
+        d.addBoth(lambda _: self._asking.discard(ss_name))
 
     def _refresh_details(self):
         watched = {name for name in self.streams.values() if name}
         for name in list(self.details):
             if name not in watched:
                 del self.details[name]
+        for name in list(self._remote_tails):
+            if name not in watched:
+                del self._remote_tails[name]
         for name in watched:
             detail = self.detail(name)
             if detail != self.details.get(name):
@@ -362,6 +389,10 @@ class Console:
         for stream, shown in list(self.streams.items()):
             if shown == name:
                 stream.send(event)
+
+    def _ask_robots(self):
+        for name in {name for name in self.streams.values() if name}:
+            self._ask_robot(name)
 
     def _beat(self):
         for stream in list(self.streams):
@@ -383,6 +414,7 @@ class Console:
             d = self.detail(detail)
             self.details[detail] = d
             stream.send(sse("detail", {"ss_name": detail, "detail": d}))
+            self._ask_robot(detail)
         return stream
 
     def _stream_closed(self, stream):

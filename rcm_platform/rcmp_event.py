@@ -34,6 +34,9 @@ HELLO_TIMEOUT = 300.0            # a robot's last resort; it waits for the answe
 HELLO_WAIT = 10.0                # seconds a new connection has to send its hello before the master closes it
 RETRY_CAP = 5.0                  # longest wait between two hellos (plus up to RETRY_JITTER)
 RETRY_JITTER = 1.0               # random seconds added to each wait, so that a fleet does not come back together
+TAILS_TIMEOUT = 5.0               # seconds the master waits for the tails of a robot's item logs (the console)
+MAX_TAIL_LINES = 50              # lines of each item's log an item_tails answer holds at most
+MAX_TAIL_CHARS = 8192            # characters of each tail, the last ones kept
 LOGGED_TEXT = 200                # characters of a peer's free text (reasons) that go into the log
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
@@ -50,6 +53,7 @@ OPS = {
     "start_items": ("robot", {"ss_name": str, "ros_master_uri": (str, _NONE), "items": list,
                               "start_ros_master_port": (int, _NONE)}),
     "stop_items": ("robot", {"ss_name": str}),
+    "item_tails": ("robot", {"ss_name": str, "lines": int}),
     "disconnect": ("robot", {"reason": str}),
 }
 OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces"}
@@ -163,6 +167,13 @@ class RobotSession:
         if self.peer.closed or self.peer.aborted:
             return defer.succeed({})
         return self.peer.request("stop_items", {"ss_name": ss_name}, timeout=STOP_TIMEOUT)
+
+    def item_tails(self, ss_name, lines):
+        """The last ``lines`` lines of the log of each item the robot runs for ``ss_name`` (the console)."""
+        if self.peer.closed or self.peer.aborted:
+            return defer.succeed({})
+        d = self.peer.request("item_tails", {"ss_name": ss_name, "lines": lines}, timeout=TAILS_TIMEOUT)
+        return d.addCallback(lambda body: body.get("tails") if isinstance(body.get("tails"), dict) else {})
 
     def _gone(self, silent):
         self.peer.abort(f"no heartbeat for {silent:.1f} s")
@@ -804,11 +815,23 @@ class RobotAgent(service.Service):
         if op == "stop_items":
             log.info("master asks to stop the items of service space %s", body["ss_name"])
             return self.runner.stop_items(body["ss_name"]).addCallback(lambda _: {})
+        if op == "item_tails":
+            return {"tails": self._item_tails(body["ss_name"], body["lines"])}
         if op == "disconnect":
             log.warning("the master disconnects this robot: %s", _short(body["reason"]))
             self._told_to_go = True
             return {}
         raise ic.Refused(f"the robot agent does not serve op {op!r}", code="unknown_op")
+
+    def _item_tails(self, ss_name, lines):
+        """``{item name: its log's last lines}`` of the items this agent runs for ``ss_name``, bounded."""
+        space = self.runner.spaces.get(ss_name)
+        lines = max(1, min(int(lines), MAX_TAIL_LINES))
+        tails = {}
+        for item in getattr(space, "items", []) or []:
+            if item.process is not None:
+                tails[item.name] = item.process.tail(lines)[-MAX_TAIL_CHARS:]
+        return tails
 
     def _item_exited(self, ss_name, report):
         """RobotSideRunner callback: an R item of ``ss_name`` exited; tell the master."""

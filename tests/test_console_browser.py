@@ -199,7 +199,9 @@ def item_cells(browser, name):
 def test_an_item_that_fails_shows_its_error_and_its_log(browser, platform, page):
     platform.provision_logic("console_broken", sn_list=[
         {"sn_package": "robotics_test", "sn_type": "crasher.py", "sn_name": "crash", "sn_params": "",
-         "sn_side": "S"}])
+         "sn_side": "S"},
+        {"sn_package": "robotics_test", "sn_type": "crasher.py", "sn_name": "crash_r", "sn_params": "",
+         "sn_side": "R"}])
     platform.provision_robot("bot_broken", "console_broken")
     browser.driver.get(platform.master.base_url + "/console/#/robot/bot_broken")
     platform.robot("bot_broken", "127.0.0.3").start()
@@ -212,8 +214,14 @@ def test_an_item_that_fails_shows_its_error_and_its_log(browser, platform, page)
         assert "imaginary_lidar" in cells[4]
         summary = browser.driver.find_element(By.ID, "rv-summary").text
         assert "not paired" in summary and "crash" in summary
-        wait_until(lambda: "imaginary_lidar" in browser.driver.find_element(By.ID, "rv-logs").text, timeout=10,
-                   message="the item's log tail")
+        assert (item_cells(browser, "crash_r") or [""] * 5)[2:4] == ["bot_broken", "failed"]
+
+        def log_of(item):
+            found = browser.driver.find_elements(By.CSS_SELECTOR, f'#rv-logs [data-item="{item}"] pre')
+            return found[0].text if found else ""
+        wait_until(lambda: "imaginary_lidar" in log_of("crash"), timeout=10, message="the S item's log tail")
+        # the R item's log is on the robot: the master asks it (item_tails) while the page shows the robot
+        wait_until(lambda: "imaginary_lidar" in log_of("crash_r"), timeout=10, message="the R item's log tail")
     finally:
         stop_robot(platform, "bot_broken")
     assert platform.remove_robot("bot_broken")[0] == 200
