@@ -172,7 +172,7 @@ class Console:
         self._building = False
         self._again = False
         self._data_seen = None
-        self._data_part = None      # (robots, servers, logics) of generation _data_seen
+        self._data_part = None      # (logics, robot addresses) of generation _data_seen
         self._heartbeat = None
         self._detail_loop = None
         self._listener = None
@@ -227,8 +227,9 @@ class Console:
                 watch.failed(f"the topic watcher {managed.error or 'ended'}")
 
     def _space_changed(self, ss_name):
+        """ServiceSpaceManager observer: ``ss_name`` changed (None: a server joined or went)."""
         self.changed()
-        watch = self.watches.get(ss_name)
+        watch = self.watches.get(ss_name) if ss_name else None
         if watch is not None and self.spaces.spaces.get(ss_name) is None:
             watch.space_gone()
 
@@ -243,7 +244,7 @@ class Console:
 
     # -- snapshots --------------------------------------------------------------------------------------
     def _read_data(self):
-        """On a thread: the robots' addresses, the servers and every service logic, from RoboticsData."""
+        """On a thread: every service logic and the robots' addresses, from RoboticsData."""
         logics = {}
         for name in self.data.service_logic_names():
             logic = self.data.service_logic(name)
@@ -263,15 +264,17 @@ class Console:
         try:
             generation = self.data.generation
             if generation != self._data_seen:
-                robots = yield self.platform.read()
-                servers = yield self._servers()
-                logics, addresses = yield threads.deferToThread(self._read_data)
-                robots = [dict(row, address=addresses.get(row["pi_name"])) for row in robots]
-                self._data_part = (robots, servers, logics)
+                self._data_part = yield threads.deferToThread(self._read_data)
                 self._data_seen = generation
-            robots, servers, logics = self._data_part
+            logics, addresses = self._data_part
+            # the robots' rows (cached on the generation) carry live state (server), and the servers are live
+            robots = yield self.platform.read()
+            robots = [dict(row, address=addresses.get(row["pi_name"])) for row in robots]
+            servers = yield self._servers()
             spaces = {}
-            for name in sorted(getattr(self.spaces, "spaces", {}) or {}):
+            # the running spaces and those waiting for a server with room (CONTRACTS §8)
+            names = set(getattr(self.spaces, "spaces", {}) or {}) | set(getattr(self.spaces, "unplaced", {}) or {})
+            for name in sorted(names):
                 described = self.describe(name)
                 if described is not None:
                     spaces[name] = described

@@ -1342,7 +1342,8 @@ class ServiceSpaceManager(_SpaceHost):
         super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
         self.public_ip = public_ip
         self.on_state = on_state
-        self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes
+        self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes;
+                              # fn(None) when a server joins or goes (the console)
         self.i_name = "master" if getattr(config, "role", "master") == "master" else config.name
         self.name = getattr(config, "name", "master")
         self.servers = {self.name: Server(self.name, getattr(config, "max_service_spaces", 100), public_ip)}
@@ -1366,6 +1367,7 @@ class ServiceSpaceManager(_SpaceHost):
         """A server VM joined: it takes new spaces from now on (nothing moves to it); waiting spaces are placed."""
         self.servers[name] = Server(name, capacity, address, host)
         log.info("server %s (%s) joined: it hosts up to %d service spaces", name, address, capacity)
+        self._changed_name(None)
         self._place_waiting_soon()
 
     def remove_server(self, name, why):
@@ -1374,6 +1376,7 @@ class ServiceSpaceManager(_SpaceHost):
         if self.servers.get(name) is None or name == self.name:
             return defer.succeed(None)
         del self.servers[name]
+        self._changed_name(None)
         lost = [self.spaces[n] for n in self.spaces_of(name)]
         log.warning("server %s lost (%s): moving its %d service space(s): %s", name, why, len(lost),
                     ", ".join(s.name for s in lost) or "none")

@@ -266,6 +266,24 @@ def test_the_live_view_of_the_demo_robots_pose_draws_and_changes(browser, platfo
     assert platform.remove_robot("demo_robot")[0] == 200
 
 
+def test_a_server_vm_that_joins_and_leaves_shows_live(browser, platform, page):
+    wait_until(lambda: row_cells(browser, "servers", platform.master.keys.get("name") or "master")
+               or browser.js("return document.querySelectorAll('#servers tbody tr').length") >= 1, timeout=10,
+               message="the master in the servers' list")
+    server = platform.robot("console_server", "127.0.0.5", role="server").start()
+    try:
+        wait_until(lambda: row_cells(browser, "servers", "console_server"), timeout=20,
+                   message="the server VM on the page")
+        page("server-joined")
+        cells = row_cells(browser, "servers", "console_server")
+        assert cells[1:3] == ["connected", "127.0.0.5"]
+    finally:
+        stop_robot(platform, "console_server")
+    wait_until(lambda: row_cells(browser, "servers", "console_server") is None, timeout=15,
+               message="the server VM to leave the page")
+    assert server.process.returncode == 0
+
+
 def rcmp_token(platform, *args):
     """The real ``rcmp_n token ...`` on the master's home."""
     done = subprocess.run(["/usr/bin/python3", "-m", "rcm_platform", "--home", platform.master.home, "token", *args],
