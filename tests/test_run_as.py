@@ -1,4 +1,4 @@
-"""Service items run as ``run_as``, not root (issue 12 row 2, CONTRACTS §10), with real agents and real ROS.
+"""Service items run as ``run_as``, not root, and stored params cannot steer roslaunch (issue 12 row 2, CONTRACTS §10).
 
 A master and a robot agent run as root (this test needs root: it checks that the agent drops to another user),
 with ``run_as=nobody``; a service logic with a node and a launcher on each side is paired, and every process of
@@ -122,3 +122,32 @@ def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tm
     assert owner["PYTHONPATH"] == "/ws/devel/lib/python3/dist-packages" and owner["HOME"] != "/root"
     other = RunAs.for_user(NOBODY).environment({"PATH": "/usr/bin:/bin"})
     assert "PYTHONPATH" not in other and other["USER"] == "nobody"
+
+
+def test_stored_params_from_an_older_version_cannot_steer_roslaunch(procs, tmp_path):
+    """Row 2 once more, for a service logic stored before the rules: its space is refused, nothing is run."""
+    import sqlite3
+    victim = tmp_path / "victim"
+    victim.write_text("keep me\n")
+    evil = tmp_path / "evil.launch"
+    evil.write_text(f'<launch><param name="x" command="/bin/rm -f {victim}"/></launch>\n')
+    plat = Platform(procs, tmp_path / "plat")
+    try:
+        plat.master.start()
+        plat.provision_logic("legacy", sl_list=[{"sl_package": "robotics_test", "sl_file_launcher": "two_talkers.launch",
+                                                 "sl_name": "pair", "sl_params": "prefix:=x", "sl_side": "S"}])
+        db = sqlite3.connect(plat.master.db_path)
+        db.execute("UPDATE service_launcher SET sl_params = ? WHERE slg_name = 'legacy'",
+                   (f"--pid={victim} {evil}",))
+        db.commit()
+        db.close()
+        plat.master.restart()   # the read cache is gone with the old process
+        plat.provision_robot("robot1", "legacy")
+        plat.robot("robot1", "127.0.0.2").start()
+        wait_until(lambda: "sl_params" in plat.master.log_text() and "arg:=value" in plat.master.log_text(),
+                   timeout=30, message="the master to refuse the stored launcher")
+        assert plat.state("robot1") != (True, True)
+        assert victim.read_text() == "keep me\n"
+        assert not processes_mentioning(str(evil))
+    finally:
+        plat.stop_all_and_check_nothing_left()
