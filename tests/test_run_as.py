@@ -15,7 +15,7 @@ from tests.support.lifecycle import Platform, processes_mentioning
 from tests.support.polling import wait_until
 from tests.support.rcmp_agent import RcmpAgent
 
-pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="switching users needs a root agent")
+needs_root = pytest.mark.skipif(os.geteuid() != 0, reason="switching users needs a root agent")
 
 NOBODY = pwd.getpwnam("nobody")
 
@@ -44,6 +44,7 @@ def platform(procs, tmp_path):
             os.kill(pid, 9)
 
 
+@needs_root
 def test_items_run_as_the_run_as_user(platform):
     platform.master.start()
     assert "service items run as nobody" in platform.master.log_text()
@@ -100,6 +101,7 @@ def test_run_as_mistakes_stop_the_agent_with_one_line(procs, tmp_path, role, val
     assert len(lines) == 1 and "run_as" in lines[0] and expected in lines[0], lines
 
 
+@needs_root
 def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tmp_path):
     from rcm_platform.rcmp_ms import RunAs
     from rcm_platform.rcmp_node import Config, WorkspaceOverlay, resolve_run_as
