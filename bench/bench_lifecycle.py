@@ -251,6 +251,10 @@ def herd(plat, count, timeout):
     sessions = plat.session_log(names, marks)
     load_after = load_average()
     plat.stop_robots(names)
+    # the robots said bye: wait for the master to tear their spaces down before anyone stops it
+    master_pid = plat.master.process.pid
+    wait_until(lambda: not [p for p in plat.leftovers() if p[0] != master_pid], timeout=180, interval=0.5,
+               message="the master to tear every space down")
     if failure:
         lost = len(sessions.ended)
         raise BenchFailure(f"{failure} (sessions ended on the way: {lost}; robots' lost-the-master lines: "
@@ -300,24 +304,21 @@ def main_herd(args):
         keys = {"max_starting_spaces": args.max_starting} if args.max_starting else {}
         plat = Platform(procs, os.path.join(tmp, "platform"), heartbeat=args.heartbeat,
                         inbound_ports=0, log_max_bytes=100 * 1024 * 1024, **keys)
+        from rcm_platform.rcmp_event import default_max_starting_spaces
         try:
             plat.master.start()
             try:
                 figures = herd(plat, args.robots, args.timeout)
-            except BenchFailure as exc:
-                figures = exc
+                body, ok = herd_section(figures, args.heartbeat, args.max_starting or default_max_starting_spaces())
+            except (BenchFailure, WaitTimeout) as exc:
+                body, ok = f"\n**Not measured: {exc}**\n", False
+            print(body)
             plat.master.stop()
         finally:
             try:
                 procs.stop_all()
             finally:
                 plat.kill_leftovers()
-    from rcm_platform.rcmp_event import default_max_starting_spaces
-    if isinstance(figures, BenchFailure):
-        body, ok = f"\n**Not measured: {figures}**\n", False
-    else:
-        body, ok = herd_section(figures, args.heartbeat, args.max_starting or default_max_starting_spaces())
-    print(body)
     if not args.no_write:
         write_section("lifecycle_herd", f"Robot lifecycle: {args.robots} robots started at once", body)
     return 0 if ok else 1
