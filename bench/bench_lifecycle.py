@@ -313,7 +313,7 @@ def main_herd(args):
             except (BenchFailure, WaitTimeout) as exc:
                 body, ok = f"\n**Not measured: {exc}**\n", False
             print(body)
-            plat.master.stop()
+            plat.master.stop(timeout=90)
         finally:
             try:
                 procs.stop_all()

@@ -28,6 +28,7 @@ from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform.rcmp_command import NotFound
 from rcm_platform.rcmp_platform_command import PlatformCommands
 from rcm_platform.rcmp_robotics_data import RoboticsData
+from rcm_platform.rcmp_service_command import ServiceCommands
 from tests.support.ports import free_port
 from tests.test_lifecycle_agents import Data, Logged, Runner, Spaces, config, until
 
@@ -514,8 +515,9 @@ class AdmissionTests(MasterCase):
             peers.append(peer)
         yield until(lambda: len(self.spaces.releases) == 2)
         self.assertEqual(sorted(self.spaces.releases), ["robot1", "robot2"])   # arrival order
-        waiting = self.master.describe("robot4")
+        waiting = yield ServiceCommands(self.data, spaces=self.master).service_space("robot4")   # the RDAPI's
         self.assertFalse(waiting["paired"])
+        self.assertTrue(waiting["waiting"])
         self.assertIn("number 2 in line", waiting["reason"])
         self.assertIn("at most 2", waiting["reason"])
         self.spaces.releases["robot2"].callback(None)

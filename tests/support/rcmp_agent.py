@@ -126,12 +126,12 @@ class RcmpAgent:
             raise AssertionError(f"agent not ready; its output:\n{self.output()[-3000:]}") from None
         return self
 
-    def stop(self):
-        """SIGTERM, then wait for exit; returns the exit status. The group is checked gone."""
+    def stop(self, timeout=20.0):
+        """SIGTERM, then wait for exit (``timeout`` s); returns the exit status. The group is checked gone."""
         if self.process is None:
             return None
         self.process.send_signal(signal.SIGTERM)
-        wait_until(lambda: self.process.poll() is not None, timeout=20.0, message="the agent to exit on SIGTERM")
+        wait_until(lambda: self.process.poll() is not None, timeout=timeout, message="the agent to exit on SIGTERM")
         status = self.process.returncode
         self.procs.stop(self.process)
         self.procs.children.remove(self.process)
