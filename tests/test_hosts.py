@@ -184,3 +184,20 @@ def test_a_killed_run_is_swept_by_the_next_one(procs, tmp_path):
     with Lan(log_dir=str(tmp_path)):
         assert not [n for n in netns_names() if n.startswith(run_id + "-")]
     assert not os.path.exists(os.path.join(hostlib.STATE_ROOT, run_id))
+
+
+def test_a_reused_pid_does_not_keep_a_dead_runs_namespaces(tmp_path):
+    # a run that died long ago with the pid this process has now: same pid, another start time
+    stale = f"{hostlib.PREFIX}-{os.getpid()}-1-1-lan"
+    other = f"{hostlib.PREFIX}-{os.getpid()}-7-lan"  # not a name this library makes: never touched
+    subprocess.run(["ip", "netns", "add", stale], check=True)
+    subprocess.run(["ip", "netns", "add", other], check=True)
+    try:
+        with Lan(log_dir=str(tmp_path)) as lan:
+            assert stale not in netns_names()
+            assert other in netns_names()
+            assert lan.run_id.startswith(f"{hostlib.PREFIX}-{os.getpid()}-")
+    finally:
+        for name in (stale, other):
+            subprocess.run(["ip", "netns", "del", name], stderr=subprocess.DEVNULL)
+    assert stale not in netns_names() and other not in netns_names()

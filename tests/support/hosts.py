@@ -2,9 +2,10 @@
 
 What a ``Lan`` builds (root only; CAP_NET_ADMIN and CAP_SYS_ADMIN):
 
-- **The LAN**: a network namespace ``rcmt-<pid>-<seq>-lan`` holding a bridge ``br0``. The bridge is never in the
+- **The LAN**: a network namespace ``rcmt-<pid>-<start>-<seq>-lan`` (the creating process's pid and start time, a
+  sequence number) holding a bridge ``br0``. The bridge is never in the
   root namespace, so no test packet can reach the machine's real network.
-- **A host** (``lan.add_host("master")``): a network namespace ``rcmt-<pid>-<seq>-<name>`` with loopback up and a
+- **A host** (``lan.add_host("master")``): a network namespace ``rcmt-<pid>-<start>-<seq>-<name>`` with loopback up and a
   veth pair created straight into the namespaces (the host's end is named ``eth0``, the LAN's end is a port of
   ``br0``), addressed in ``203.0.113.0/24`` (``.10`` upwards unless an address is given).
 - **A mount namespace per host**, held by a *holder* process: ``setpriv --pdeathsig KILL ip netns exec NS sleep
@@ -33,7 +34,8 @@ namespaces and overlays vanish with them), deletes every network namespace (veth
 and removes the state folder. SIGTERM and SIGHUP are turned into ``SystemExit`` while a LAN is open so that
 ``finally`` blocks and ``atexit`` run; Ctrl-C already does. If the test process is SIGKILLed, the holders die
 with it (``pdeathsig``) and the next ``Lan`` created on the machine sweeps namespaces and state folders whose
-owner pid is gone. Names carry the creating pid and a sequence number, so parallel runs never collide.
+owner (pid and start time, so a reused pid does not count) is gone. Names carry the creating pid, its start time
+and a sequence number, so parallel runs never collide.
 
 Create LANs from the main thread (``pdeathsig`` fires when the creating *thread* exits).
 """
@@ -97,14 +99,18 @@ def netns_pids(netns):
     return [int(p) for p in result.stdout.split() if p.isdigit()]
 
 
-def _pid_alive(pid):
+def _start_time(pid):
+    """The start time of process ``pid`` (clock ticks since boot), or None when it is gone."""
     try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[19])
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def _owner_alive(pid, start):
+    """True while the process that made a run (``pid`` started at ``start``) lives; a reused pid does not count."""
+    return _start_time(pid) == start
 
 
 def _kill_netns_processes(netns):
@@ -128,15 +134,15 @@ def _kill_netns_processes(netns):
 
 def sweep_stale():
     """Remove namespaces and state folders of runs whose creating process is gone (a SIGKILLed test run)."""
-    pattern = re.compile(rf"^{PREFIX}-(\d+)-\d+-")
+    pattern = re.compile(rf"^{PREFIX}-(\d+)-(\d+)-\d+-")   # PREFIX-PID-STARTTIME-SEQ-...
     for netns in netns_names():
         m = pattern.match(netns)
-        if m and not _pid_alive(int(m.group(1))):
+        if m and not _owner_alive(int(m.group(1)), int(m.group(2))):
             _kill_netns_processes(netns)
             _ip_unchecked("netns", "del", netns)
     for entry in os.listdir(STATE_ROOT):
         m = pattern.match(entry + "-") if entry.startswith(PREFIX + "-") else None
-        if m and not _pid_alive(int(m.group(1))):
+        if m and not _owner_alive(int(m.group(1)), int(m.group(2))):
             shutil.rmtree(os.path.join(STATE_ROOT, entry), ignore_errors=True)
 
 
@@ -296,7 +302,7 @@ class Lan:
         self.network = ipaddress.ip_network(subnet)
         self.prefixlen = self.network.prefixlen
         with _lock:
-            self.run_id = f"{PREFIX}-{os.getpid()}-{next(_seq)}"
+            self.run_id = f"{PREFIX}-{os.getpid()}-{_start_time(os.getpid())}-{next(_seq)}"
         self.netns = f"{self.run_id}-lan"
         self.hosts = {}
         self._netns = []
@@ -401,7 +407,7 @@ class Lan:
         if self.state_dir and os.path.exists(self.state_dir):
             left.append(self.state_dir)
         left += [f"holder {h.holder.pid}" for h in self.hosts.values()
-                 if h.holder is not None and _pid_alive(h.holder.pid) and h.holder.poll() is None]
+                 if h.holder is not None and h.holder.poll() is None]
         return left
 
     def __enter__(self):
