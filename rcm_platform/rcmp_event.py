@@ -15,6 +15,7 @@ thread, one write after the other in the order the events happened.
 import collections
 import logging
 import os
+import random
 
 from twisted.application import service
 from twisted.internet import defer, threads
@@ -790,7 +791,8 @@ class RobotAgent(service.Service):
         was_accepted, self.accepted = self.accepted, False
         delay = self.backoff.next_delay()
         if self._told_to_go:
-            delay = max(delay, AFTER_DISCONNECT)
+            # a master that stops tells every robot at once: their jitter must survive this floor
+            delay = max(delay, AFTER_DISCONNECT + random.random() * RETRY_JITTER)
         if not self.running:         # stopService stops the items itself
             return
         if not was_accepted:
