@@ -627,3 +627,30 @@ class SlowMasterTests(unittest.TestCase):
         self.assertIsNot(handler.hellos[1], first)
         first.abort("test over")
         handler.hellos[1].abort("test over")
+
+
+class FleetReturnTests(MasterCase):
+    """A master that stops tells every robot to go at once; they must not all come back in the same instant."""
+
+    provisioned = tuple(f"robot{n}" for n in range(1, 11))
+
+    @defer.inlineCallbacks
+    def test_a_told_fleet_comes_back_spread_out(self):
+        self.patch(rcmp_event, "AFTER_DISCONNECT", 0.2)
+        robots = [self.robot(f"robot{n}", f"127.0.0.{n + 1}")[0] for n in range(1, 11)]
+        yield until(lambda: all("paired" in self.data.names(f"robot{n}") for n in range(1, 11)))
+        yield self.master.stopService()
+        arrivals = []
+        spaces = Spaces()
+        original = spaces.create
+
+        def create(pi_name, logic, robot):
+            arrivals.append(reactor.seconds())
+            return original(pi_name, logic, robot)
+        spaces.create = create
+        again = rcmp_event.MasterAgent(self.master.config, self.data, None, reactor, "127.0.0.1", spaces=spaces)
+        again.startService()
+        self.addCleanup(lambda: again.running and again.stopService())
+        yield until(lambda: len(arrivals) == 10, timeout=10)
+        self.assertGreater(max(arrivals) - min(arrivals), 0.3, arrivals)   # jitter: 0 to 1 s each
+        self.assertTrue(all(robot.accepted for robot in robots))
