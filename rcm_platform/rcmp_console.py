@@ -35,8 +35,10 @@ from twisted.application import service
 from twisted.internet import defer, protocol, task, threads
 from twisted.protocols.basic import LineReceiver
 from twisted.web import resource, server
-from zope.interface import implementer
 from twisted.internet.interfaces import IPushProducer
+from zope.interface import implementer
+
+from .rcmp_command import CommandError, child_env, validate_name
 
 log = logging.getLogger("rcm_platform.console")
 
@@ -398,7 +400,8 @@ class Console:
             self._ask_robot(name)
 
     def _beat(self):
-        for stream in list(self.streams):
+        streams = list(self.streams) + [s for w in self.watches.values() for s in w.streams]
+        for stream in streams:
             stream.send(b": heartbeat\n\n")
 
     # -- streams ----------------------------------------------------------------------------------------
@@ -486,7 +489,6 @@ class TopicWatch:
         self._sent_watch = None
 
     def start(self, port):
-        from .rcmp_command import child_env
         package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         env = child_env(self.console.env, self.ros_master_uri, self.address,
                         os.path.join(self.console.table.log_dir, "ros"))
@@ -627,6 +629,7 @@ class _WatcherLink(LineReceiver):
         self.transport.loseConnection()
 
     def connectionLost(self, reason=protocol.connectionDone):
+        self.factory.open -= 1
         if self._hello_timeout.active():
             self._hello_timeout.cancel()
         if self.watch is not None and self.watch.link is self:
@@ -634,6 +637,8 @@ class _WatcherLink(LineReceiver):
 
 
 class _WatcherFactory(protocol.Factory):
+    """The loopback listener for watcher nodes: at most ``MAX_WATCHES * 2`` connections at once."""
+
     noisy = False
 
     def __init__(self, console):
@@ -646,12 +651,6 @@ class _WatcherFactory(protocol.Factory):
         link = _WatcherLink(self.console)
         link.factory = self
         self.open += 1
-        lost = link.connectionLost
-
-        def connection_lost(reason=protocol.connectionDone):
-            self.open -= 1
-            lost(reason)
-        link.connectionLost = connection_lost
         return link
 
 
@@ -699,7 +698,6 @@ class ConsoleResource(resource.Resource):
                     self.files[name] = (f.read(), kind.encode())
 
     def render(self, request):
-        from .rcmp_command import validate_name, CommandError
         path = request.path.decode("latin-1")
         for name, value in self.SECURITY_HEADERS:
             request.setHeader(name, value)

@@ -240,3 +240,32 @@ class ConsoleStreamTest(unittest.TestCase):
         body = self.resource.render(request)
         self.assertEqual(request.responseCode, 404)
         self.assertEqual(json.loads(body)["reason"], "there is no running service space named 'nobody'")
+
+    @defer.inlineCallbacks
+    def test_a_loopback_client_without_a_watchers_key_is_closed(self):
+        from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
+        from twisted.internet.protocol import Protocol
+
+        class Client(Protocol):
+            def __init__(self):
+                self.lost = defer.Deferred()
+
+            def connectionLost(self, reason):
+                self.lost.callback(None)
+        port = self.console._listener.getHost().port
+        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
+        client.transport.write(b'{"name": "robot1", "key": "guessed"}\n')
+        yield client.lost                      # closed by the agent, not by the test
+        self.assertEqual(self.console._listener.factory.open, 0)
+        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
+        client.transport.write(b"x" * (rcmp_console.MAX_LINE + 10))   # an endless line
+        yield client.lost
+
+    def test_a_topic_name_that_is_not_one_is_refused(self):
+        self.spaces.add(FakeSpace("robot3", []))
+        for topic in (b"pose", b"/a b", b"/" + b"x" * 300):
+            request = StreamRequest(path=b"/console/api/topic", args={b"ss_name": [b"robot3"], b"topic": [topic]})
+            body = self.resource.render(request)
+            self.assertEqual(request.responseCode, 400, topic)
+            self.assertIn("ROS topic name", json.loads(body)["reason"])
+        self.assertEqual(self.console.watches, {})
