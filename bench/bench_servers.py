@@ -57,7 +57,7 @@ def servers(plat):
     status, answer = plat.master.get("/platform_instance/read?pi_type=S")
     if status != 200:
         raise BenchFailure(f"platform_instance/read?pi_type=S answered {status}: {answer}")
-    return {row["pi_name"]: row for row in answer["reason"]}
+    return {row["pi_name"]: row for row in answer["reason"] if row["connected"]}
 
 
 def provision(plat, names):

@@ -1337,6 +1337,7 @@ class ServiceSpaceManager(_SpaceHost):
     VM, ``add_server``). See docs/SERVICE_SPACES.md."""
 
     key_prefix = "ss"
+    GONE_KEPT = 100              # server VMs no longer connected that platform_instance/read?pi_type=S still lists
 
     def __init__(self, reactor, table, config, public_ip, env=None, on_state=None, address=None, run_as=None):
         super().__init__(reactor, table, config, env=env, address=address, run_as=run_as)
@@ -1348,6 +1349,7 @@ class ServiceSpaceManager(_SpaceHost):
         self.name = getattr(config, "name", "master")
         self.servers = {self.name: Server(self.name, getattr(config, "max_service_spaces", 100), public_ip)}
         self.unplaced = collections.OrderedDict()   # pi_name -> (service logic, robot): waiting for room
+        self.gone = collections.OrderedDict()       # server VMs lost or left: name -> Server (the last GONE_KEPT)
         self._placing = None
 
     # -- servers and placement (CONTRACTS §8) --------------------------------------------------------------
@@ -1366,6 +1368,7 @@ class ServiceSpaceManager(_SpaceHost):
     def add_server(self, name, host, capacity, address):
         """A server VM joined: it takes new spaces from now on (nothing moves to it); waiting spaces are placed."""
         self.servers[name] = Server(name, capacity, address, host)
+        self.gone.pop(name, None)
         log.info("server %s (%s) joined: it hosts up to %d service spaces", name, address, capacity)
         self._changed_name(None)
         self._place_waiting_soon()
@@ -1375,7 +1378,9 @@ class ServiceSpaceManager(_SpaceHost):
         on the servers with room; the rest wait for room. Fires when each was rebuilt or put in line."""
         if self.servers.get(name) is None or name == self.name:
             return defer.succeed(None)
-        del self.servers[name]
+        self.gone[name] = self.servers.pop(name)
+        while len(self.gone) > self.GONE_KEPT:
+            self.gone.popitem(last=False)
         self._changed_name(None)
         lost = [self.spaces[n] for n in self.spaces_of(name)]
         log.warning("server %s lost (%s): moving its %d service space(s): %s", name, why, len(lost),
@@ -1416,14 +1421,17 @@ class ServiceSpaceManager(_SpaceHost):
                 f"({limits}); number {place} in line")
 
     def server_rows(self, master_address):
-        """The ``platform_instance/read?pi_type=S`` rows: the master first, then the server VMs by name."""
-        rows = []
+        """The ``platform_instance/read?pi_type=S`` rows: the master first, then the server VMs by name (those no
+        longer connected too, with ``connected`` false, until they come back)."""
         master = self.servers[self.name]
-        others = sorted((s for s in self.servers.values() if s.host is not None), key=lambda s: s.name)
-        for server in [master] + others:
-            rows.append({"pi_name": server.name, "pi_type": "S", "connected": True,
+        others = [s for s in self.servers.values() if s.host is not None] + list(self.gone.values())
+        rows = []
+        for server in [master] + sorted(others, key=lambda s: s.name):
+            connected = self.servers.get(server.name) is server
+            rows.append({"pi_name": server.name, "pi_type": "S", "connected": connected,
                          "address": master_address if server is master else server.address,
-                         "max_service_spaces": server.capacity, "service_spaces": self.spaces_of(server.name)})
+                         "max_service_spaces": server.capacity,
+                         "service_spaces": self.spaces_of(server.name) if connected else []})
         return rows
 
     # -- create ---------------------------------------------------------------------------------------------
