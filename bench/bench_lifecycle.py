@@ -232,6 +232,29 @@ def load_average():
         return "?"
 
 
+def cpu_seconds(pids):
+    """User plus system CPU seconds the live processes ``pids`` used so far (from /proc/PID/stat)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    total = 0
+    for pid in pids:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            total += int(fields[11]) + int(fields[12])     # utime, stime (fields 14 and 15 of stat)
+        except (OSError, IndexError, ValueError):
+            continue
+    return total / tick
+
+
+def herd_cpu(plat, names):
+    """CPU seconds so far: (master agent, master-side ROS processes, robot agents, robot-side processes)."""
+    master = plat.master.process.pid
+    robots = [plat.robots[n].process.pid for n in names if plat.robots[n].process is not None]
+    robot_children = [c for pid in robots for c in OsFacade(None).descendants(pid)]
+    return (cpu_seconds([master]), cpu_seconds(OsFacade(None).descendants(master)), cpu_seconds(robots),
+            cpu_seconds(robot_children))
+
+
 def herd(plat, count, timeout):
     """Start ``count`` robots at once; the figures of the herd section (dict), or BenchFailure."""
     plat.provision_logic("bench_herd", sn_list=LOGIC)
@@ -240,6 +263,7 @@ def herd(plat, count, timeout):
         plat.provision_robot(name, "bench_herd")
     marks = plat.log_marks()
     load_before = load_average()
+    master_cpu_before = cpu_seconds([plat.master.process.pid])
     started_at = time.monotonic()
     started = plat.start_herd(names, log_max_bytes=10 * 1024 * 1024)
     try:
@@ -250,6 +274,7 @@ def herd(plat, count, timeout):
     elapsed = time.monotonic() - started_at
     sessions = plat.session_log(names, marks)
     load_after = load_average()
+    cpu = herd_cpu(plat, names)
     plat.stop_robots(names)
     # the robots said bye: wait for the master to tear their spaces down before anyone stops it
     master_pid = plat.master.process.pid
@@ -260,12 +285,15 @@ def herd(plat, count, timeout):
         raise BenchFailure(f"{failure} (sessions ended on the way: {lost}; robots' lost-the-master lines: "
                            f"{len(sessions.robot_lost)}; RDAPI reads that failed: {len(plat.read_failures)})")
     return {"count": count, "elapsed": elapsed, "per_robot": sorted(per_robot.values()), "sessions": sessions,
-            "load": (load_before, load_after), "read_failures": len(plat.read_failures)}
+            "load": (load_before, load_after), "read_failures": len(plat.read_failures), "cpu": cpu,
+            "master_cpu_before": master_cpu_before}
 
 
 def herd_section(figures, heartbeat, max_starting):
     sessions = figures["sessions"]
     per_robot = figures["per_robot"]
+    cpu = figures["cpu"]
+    total_cpu = cpu[0] - figures["master_cpu_before"] + cpu[1] + cpu[2] + cpu[3]
     robot_hello = sessions.robot_hello or [float("nan")]
     master_hello = sessions.master_hello or [float("nan")]
     lost = len(sessions.ended) + len(sessions.reopened())
@@ -291,8 +319,14 @@ once (`max_starting_spaces`), the rest wait in arrival order. Load average (1 / 
 | `platform_instance/read` polls that failed (no answer within 10 s) | {figures["read_failures"]} | |
 
 Robots' time is from sending hello to reading the answer (it includes the master's event loop being busy
-elsewhere); the master's is from reading the hello to writing the answer (the provisioning lookup in a thread
-and the robot's lock). Per-robot times are read by polling `platform_instance/read` every 0.2 s.
+elsewhere, and the robot's own: here robots share the master's 2 cores); the master's is from reading the hello
+to writing the answer. Per-robot times are read by polling `platform_instance/read` every 0.2 s.
+
+CPU seconds used until all were paired (user + system, live processes): master agent {cpu[0] - figures["master_cpu_before"]:.1f},
+master-side ROS processes (`rosmaster`, `rosout`, S nodes) {cpu[1]:.1f}, robot agents {cpu[2]:.1f}, robot-side
+processes (R nodes) {cpu[3]:.1f}; in all **{total_cpu:.0f} CPU-s**, against the {os.cpu_count() * figures["elapsed"]:.0f} CPU-s that
+{os.cpu_count()} cores offer in {figures["elapsed"]:.0f} s (other users of the machine not counted). When the sum
+approaches the offer, the time to pair all is bound by the machine, not by admission.
 """
     return body, ok_time and ok_lost and ok_hello
 
