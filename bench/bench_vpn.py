@@ -37,6 +37,7 @@ from tests.support.processes import ProcessGroup  # noqa: E402
 from tests.support.vpn_hosts import VpnPlatform  # noqa: E402
 
 POLL = 0.02
+OPTIONS = ("--quick",)   # what bench.run_all passes on
 STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) ", re.M)
 
 
@@ -100,8 +101,11 @@ def loopback_pairing(tmp, runs):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=5, help="runs of each measure (default 5)")
+    parser.add_argument("--quick", action="store_true", help="2 runs of each measure")
     parser.add_argument("--no-write", action="store_true", help="print, do not write docs/PERFORMANCE.md")
     args = parser.parse_args(argv)
+    if args.quick:
+        args.runs = 2
     if os.geteuid() != 0:
         print("bench_vpn: needs root (test hosts are network namespaces); skipped", file=sys.stderr)
         return 1
