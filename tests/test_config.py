@@ -114,6 +114,9 @@ BAD = [
     ("init.cfg", "[main]\nname=r1\nip_master=master.local\n", "key 'ip_master': not an IPv4 address"),
     ("init.cfg", "[main]\nname=r1\next_port=8080\n", "key 'ext_port': not used by a robot"),
     ("init.cfg", "[main]\nname=r1\nrobot=no\next_address=1.2.3.4\n", "key 'ext_address': not used by a server VM"),
+    ("init.cfg", "[main]\nname=r1\nmax_service_spaces=5\n", "key 'max_service_spaces': not used by a robot"),
+    (".init.cfg", "[main]\nmax_service_spaces=-1\n", "key 'max_service_spaces': must be between 0 and 100000"),
+    (".init.cfg", "[main]\nmax_service_spaces=100001\n", "key 'max_service_spaces': must be between 0 and 100000"),
     ("init.cfg", b"[main]\nname=\xff\n", "not a UTF-8 text file"),
 ]
 
