@@ -8,7 +8,7 @@ down. Reads are answered from a ``ReadCache`` while the robotics data has not ch
 
 from twisted.internet import defer, threads
 
-from .rcmp_command import BadRequest, command, ReadCache, require_fields, validate_name
+from .rcmp_command import BadRequest, Conflict, command, ReadCache, require_fields, validate_name
 
 
 class PlatformCommands:
@@ -55,6 +55,8 @@ class PlatformCommands:
         require_fields(body, ("pi_name", "pi_service_logic"))
         pi_name = validate_name(body["pi_name"], "pi_name")
         slg_name = validate_name(body["pi_service_logic"], "pi_service_logic")
+        if pi_name in getattr(self.robots, "servers", {}):
+            raise Conflict(f"'{pi_name}' is the name of a connected server VM; give the robot another name")
         d = threads.deferToThread(self.data.provision_platform_instance, pi_name, slg_name)
         d.addCallback(lambda _: f"platform instance '{pi_name}' provisioned with service logic '{slg_name}'")
         return d

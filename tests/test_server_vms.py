@@ -126,6 +126,10 @@ def test_spaces_are_placed_by_load_on_the_master_and_two_server_vms(make_platfor
     for index, name in enumerate(expected, start=1):
         start_robot(plat, name, index)
         check_placed_on(plat, name, expected[name])
+    status, answer = plat.master.post("/platform_instance/provisioning",
+                                      {"pi_name": "vm1", "pi_service_logic": "two_sides"})
+    assert (status, answer["reason"]) == (409, "'vm1' is the name of a connected server VM; give the robot another "
+                                               "name")
     rows = servers(plat)
     assert list(rows) == ["master", "vm1", "vm2"]                              # the master first
     assert rows["master"] == {"pi_name": "master", "pi_type": "S", "connected": True, "address": "127.0.0.1",
