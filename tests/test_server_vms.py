@@ -15,7 +15,8 @@ import pytest
 from rcm_platform.rcmp_ms import Server, choose_server
 from tests.support.lifecycle import HEARTBEAT, Platform
 from tests.support.polling import wait_until
-from tests.support.ports import ros_port_base
+from tests.support.firos import write_config
+from tests.support.ports import port_accepts, ros_port_base, stable_free_ports
 
 VM_ADDRESS = {"vm1": "127.0.0.10", "vm2": "127.0.0.11"}
 START = 60   # seconds a space may take to start: a deadline for a machine loaded by other tests, not a target
@@ -268,3 +269,26 @@ def test_a_server_vm_cut_off_loses_its_spaces_and_stops_what_it_ran_for_them(mak
     check_placed_on(plat, "r2", "master")
     wait_until(lambda: "vm1" in servers(plat), timeout=30, message="vm1 to join again")
     assert servers(plat)["vm1"]["service_spaces"] == []
+
+
+@pytest.mark.slow
+def test_firos_on_a_server_vm_takes_the_servers_inbound_open_port(make_platform, tmp_path):
+    """FIROS in a space placed on a server VM gets one of that server's inbound_open_ports and listens there at
+    the server's address; service_space/read gives that port and address."""
+    port = stable_free_ports(1, VM_ADDRESS["vm1"])[0]
+    plat = make_platform(0)
+    plat.master.start()
+    config_dir = write_config(str(tmp_path / "firos-config"), broker_port=stable_free_ports(1)[0])
+    plat.provision_logic("two_sides", sn_list=[
+        {"sn_package": "firos", "sn_type": "core.py", "sn_name": "firos", "sn_params": f"--config {config_dir}",
+         "sn_side": "S"}])
+    vm = plat.robot("vm1", VM_ADDRESS["vm1"], role="server", max_service_spaces=1, inbound_open_ports=port,
+                    ros_port_base=ros_port_base(VM_ADDRESS["vm1"]))
+    vm.start()
+    wait_until(lambda: "vm1" in servers(plat), timeout=30, message="vm1 to join")
+    start_robot(plat, "r1", 1)
+    described = space(plat, "r1")
+    assert (described["server"], described["public_ip"], described["inbound_port"]) == ("vm1", "127.0.0.10", port)
+    assert plat.instances()["r1"]["server"] == "vm1"
+    wait_until(lambda: port_accepts(port, VM_ADDRESS["vm1"]), timeout=START,
+               message="FIROS listening on the server's inbound port")
