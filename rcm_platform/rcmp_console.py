@@ -239,6 +239,9 @@ class Console:
         """Something may have changed: rebuild and push within ``coalesce`` seconds (once for many changes)."""
         if not self.running:
             return
+        if not self.streams and not self._waiting:
+            self.snapshot = None    # nobody looks: no work; the next stream gets a fresh snapshot
+            return
         if self._building:
             self._again = True
         elif self._call is None:
@@ -335,6 +338,7 @@ class Console:
         """A Deferred firing with the next snapshot published (tests and the benchmark)."""
         d = defer.Deferred()
         self._waiting.append(d)
+        self.changed()
         return d
 
     # -- details: log tails of the spaces pages look at -------------------------------------------------

@@ -134,6 +134,7 @@ class ConsoleStreamTest(unittest.TestCase):
         self.assertEqual(result, rcmp_console.server.NOT_DONE_YET)
         self.assertEqual(request.responseHeaders.getRawHeaders(b"content-type"),
                          [b"text/event-stream; charset=utf-8"])
+        yield self.wait_event(request, lambda n, d: n == "snapshot", "the snapshot")
         name, snapshot = [e for e in request.events() if e[0] != "comment"][0]
         self.assertEqual(name, "snapshot")
         self.assertEqual(snapshot["robots"], [{"pi_name": "robot1", "service_logic": "empty", "connected": False,
@@ -269,3 +270,16 @@ class ConsoleStreamTest(unittest.TestCase):
             self.assertEqual(request.responseCode, 400, topic)
             self.assertIn("ROS topic name", json.loads(body)["reason"])
         self.assertEqual(self.console.watches, {})
+
+    @defer.inlineCallbacks
+    def test_with_no_page_open_nothing_is_rebuilt_and_the_next_page_gets_the_present(self):
+        yield self.console.next_snapshot()
+        seq = self.console.seq
+        for i in range(5):
+            self.data.provision_platform_instance(f"quiet{i}", "empty")
+        yield until_deferred(lambda: self.console.snapshot is None, message="the old snapshot to be dropped")
+        self.assertIsNone(self.console._call)            # and none is scheduled
+        self.assertEqual(self.console.seq, seq)          # no snapshot was built for nobody
+        request, _ = self.open()
+        yield self.wait_event(request, lambda n, d: n == "snapshot" and len(d["robots"]) == 5,
+                              "a snapshot of the present")
