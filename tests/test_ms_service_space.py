@@ -428,6 +428,42 @@ class ServiceSpaceTests(unittest.TestCase):
         yield self.manager.teardown("robot1")
 
 
+    @defer.inlineCallbacks
+    def test_a_space_placed_on_a_server_vm_runs_its_s_side_there(self):
+        """The master's capacity 0: the space goes to server vm1 (a RobotSideRunner as a server VM's agent has
+        it), whose ROS master starts from vm1's own ros_port_base at vm1's address, with rcm_driver told
+        r_connection there; the robot's R node uses vm1's master; teardown leaves nothing."""
+        server_ip = "127.0.0.3"
+        self.master_config.max_service_spaces = 0
+        self.manager = ServiceSpaceManager(reactor, self.master_table, self.master_config, "192.0.2.10",
+                                           env=self.env, on_state=lambda *a: self.states.append(a[:2]))
+        server_config = SimpleNamespace(role="server", name="vm1", vpn_address=server_ip, vpn_interface="lo",
+                                        inbound_open_ports=[], ros_port_base=ros_port_base(server_ip))
+        server_table = ProcessTable(reactor, os.path.join(self.tmp, "server-log"), settle_time=1.0,
+                                    stop_timeouts=(3.0, 1.0))
+        server = RobotSideRunner(reactor, server_table, server_config, env=self.env,
+                                 on_item_exited=self.manager.item_exited)
+        self.manager.add_server("vm1", InProcessRobot("vm1", server), 2, server_ip)
+        logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py"),
+                             node("r_talker", side="R", params="_topic:=r_chatter")]}
+        space = yield self.manager.create("robot1", logic, self.robot)
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
+        described = describe(self.manager, "robot1")
+        self.assertEqual((described["server"], described["public_ip"]), ("vm1", server_ip))
+        self.assertEqual({n["sn_name"]: n["i_name"] for n in described["r_nodes"]},
+                         {"rcmdriver": "vm1", "r_talker": "robot1"})
+        self.assertTrue(space.ros_master_uri.startswith(f"http://{server_ip}:"), space.ros_master_uri)
+        port = int(space.ros_master_uri.rstrip("/").rsplit(":", 1)[1])
+        self.assertGreaterEqual(port, server_config.ros_port_base)
+        self.assertIsNotNone(server.spaces["robot1"].driver_link, "rcm_driver on the server not told r_connection")
+        self.assertEqual(self.master_table.processes(), [])        # nothing of the space runs on the master
+        yield self.wait_for(lambda: _try(lambda: "/r_talker" in _node_names(self.graph(space.ros_master_uri))),
+                            what="the robot's node at the server's ROS master")
+        yield self.manager.teardown("robot1")
+        self.assertEqual(server.spaces, {})
+        self.assertEqual([p for p in server_table.processes() if p.state in rcmp_ms.LIVE_STATES], [])
+
+
 def _try(condition):
     try:
         return condition()
