@@ -98,6 +98,7 @@ def main(argv=None):
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--no-write", action="store_true", help="print the results, leave PERFORMANCE.md alone")
     args = parser.parse_args(argv)
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-console-") as tmp, ProcessGroup(log_dir=tmp) as procs:
         master = RcmpAgent(procs, os.path.join(tmp, "master"), args=["--no-stderr", "--log-level", "WARNING"])
         master.start()
@@ -141,6 +142,8 @@ def main(argv=None):
             browser.quit()
             master.stop()
 
+    load_after = os.getloadavg()[0]
+
     def row(what, values):
         ms = [v * 1000 for v in values]
         return (f"| {what} | {len(ms)} | {statistics.median(ms):.0f} | {percentile(ms, 0.99):.0f} | "
@@ -160,6 +163,9 @@ def main(argv=None):
         "",
         f"Rendering a full snapshot of {ROBOTS} robots in the page: {render_ms:.0f} ms. "
         f"Uncaught JavaScript errors: {len(errors)}.",
+        "",
+        f"Load average (1 min) of the machine: {load_before:.1f} before, {load_after:.1f} after (other "
+        f"engineers' tests were running; the machine has {os.cpu_count()} cores).",
         "",
         f"Target (issue 11): p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
         f"({p99 * 1000:.0f} ms). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
