@@ -4,6 +4,7 @@ logged, stopped with the agent. (Over a working VPN, across hosts: tests/test_vp
 import os
 import re
 
+from tests.support.lifecycle import processes_mentioning
 from tests.support.polling import wait_until
 from tests.support.rcmp_agent import RcmpAgent
 
@@ -29,3 +30,20 @@ def test_an_openvpn_that_keeps_exiting_is_restarted_with_backoff_and_stopped_wit
     assert "connected to master" not in text          # nothing else started before the VPN is up
     assert agent.stop() == 0
     assert "managed VPN: stopping OpenVPN" in agent.log_text()
+    assert not processes_mentioning(str(home))
+
+
+def test_a_master_that_cannot_start_once_its_vpn_is_up_says_why_and_stops_its_openvpn(procs, tmp_path):
+    home = tmp_path / "master"
+    (home / "vpn").mkdir(parents=True, mode=0o700)
+    (home / "vpn" / "server.conf").write_text("no-such-openvpn-option yes\n")   # never a real tun0 here
+    agent = RcmpAgent(procs, str(home), role="master", vpn_address="127.0.0.1", ext_address=None,
+                      ext_interface="rcmtnone0")
+    agent.start(wait=False)
+    assert agent.process.wait(timeout=30) == 2
+    output = agent.output()
+    assert "cannot start the master" in output and "rcmtnone0" in output and "Traceback" not in output
+    text = agent.log_text()
+    assert "managed VPN: starting OpenVPN" in text and "managed VPN: stopping OpenVPN" in text
+    assert text.index("managed VPN: starting OpenVPN") < text.index("cannot start")
+    wait_until(lambda: not processes_mentioning(str(home)), timeout=10, message="OpenVPN to be gone")
