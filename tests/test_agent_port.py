@@ -653,4 +653,4 @@ class FleetReturnTests(MasterCase):
         self.addCleanup(lambda: again.running and again.stopService())
         yield until(lambda: len(arrivals) == 10, timeout=10)
         self.assertGreater(max(arrivals) - min(arrivals), 0.3, arrivals)   # jitter: 0 to 1 s each
-        self.assertTrue(all(robot.accepted for robot in robots))
+        yield until(lambda: all(robot.accepted for robot in robots))
