@@ -68,7 +68,8 @@ def test_demo_pairs_shows_the_seed_commands_and_stops_cleanly_on_ctrl_c(procs, t
 
     assert "Welcome to the RCM platform node server!" in _curl(f"http://127.0.0.1:{port}")
     rows = json.loads(_curl(f"http://127.0.0.1:{port}/platform_instance/read"))["reason"]
-    assert rows == [{"pi_name": "demo_robot", "service_logic": "demo_patrol", "connected": True, "paired": True}]
+    assert rows == [{"pi_name": "demo_robot", "service_logic": "demo_patrol", "connected": True, "paired": True,
+                     "server": "master"}]     # (ext) the server hosting its space (CONTRACTS section 8)
     space = json.loads(_curl(f"http://127.0.0.1:{port}/service_space/read?ss_name=demo_robot"))["reason"]
     where = {n["sn_name"]: n["i_name"] for n in space["r_nodes"]}
     assert where == {"sim_robot": "demo_robot", "patrol_brain": "master"}
