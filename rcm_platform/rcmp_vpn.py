@@ -239,7 +239,7 @@ remote-cert-tls client
 tls-version-min 1.2
 client-config-dir ccd
 ccd-exclusive
-keepalive 5 30
+keepalive 2 10
 explicit-exit-notify 1
 persist-key
 management {MANAGEMENT_SOCKET} unix

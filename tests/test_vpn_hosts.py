@@ -246,6 +246,26 @@ def test_the_agent_restarts_its_openvpn_when_it_dies(platform):
     assert robot1.vpn_address() == "198.51.100.2"
 
 
+def test_when_the_masters_openvpn_dies_it_is_restarted_and_both_robots_pair_again(platform):
+    p = platform
+    [pid] = _openvpn_pids(p.master_host)
+    mark = len(p.master.log_text())
+    os.kill(pid, signal.SIGKILL)
+    wait_until(lambda: "managed VPN: OpenVPN ended (killed by signal 9" in p.master.log_text()[mark:], timeout=10,
+               message="the master's agent to log that its OpenVPN died")
+    # the tunnel is gone for a while: both sessions end (heartbeats), then the robots' OpenVPN notice the new
+    # server (keepalive) and both robots pair again, on the same listener
+    for name in ("robot1", "robot2"):
+        wait_until(lambda: f"lost robot {name}" in p.master.log_text()[mark:], timeout=10,
+                   message=f"{name}'s session to end")
+    for name in ("robot1", "robot2"):
+        wait_until(lambda: f"robot {name} paired" in p.master.log_text()[mark:], timeout=60, interval=0.2,
+                   message=f"{name} to pair again")
+        p.wait_state(name, True, True, timeout=10)
+    assert listening(p.master_host, 9999) == [MASTER_VPN]
+    assert p.master.process.poll() is None
+
+
 def test_a_restarted_master_pairs_both_robots_again(platform):
     p = platform
     assert p.master.stop() == 0
