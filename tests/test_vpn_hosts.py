@@ -1,7 +1,7 @@
 """The platform across hosts over its own VPN (issue 9): real OpenVPN run by the agents, real network namespaces.
 
 One set of hosts serves the module (``tests/support/vpn_hosts.py``): a master, two robots and an office machine
-on the LAN ``203.0.113.0/24``, the VPN ``198.51.100.0/24`` made by ``rcmp_n vpn init``. Every agent has the
+(the administrator's curl, and the fourth host where the stand-in broker runs for FIROS) on the LAN ``203.0.113.0/24``, the VPN ``198.51.100.0/24`` made by ``rcmp_n vpn init``. Every agent has the
 default configuration (``tun0``, ``eth0``, ports 80 and 9999, no address keys; short heartbeats only) and runs
 OpenVPN itself. The tests run in file order and each leaves the platform as it found it (both robots paired),
 except the last, which revokes robot2.
