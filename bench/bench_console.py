@@ -11,8 +11,10 @@ Target (issue 11): p99 under 1 s from a change to the page. ``main`` returns 1 w
 """
 
 import argparse
+import datetime
 import json
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -27,12 +29,14 @@ if ROOT not in sys.path:
 from bench.report import write_section  # noqa: E402
 from tests.support.browser import Browser  # noqa: E402
 from tests.support.polling import wait_until  # noqa: E402
+from tests.support.ports import ros_port_base  # noqa: E402
 from tests.support.processes import ProcessGroup  # noqa: E402
 from tests.support.rcmp_agent import RcmpAgent  # noqa: E402
 
 ROBOTS = 100
 ITEMS = 50
 ROUNDS = 40
+LIVE_ROUNDS = 5
 TARGET_P99_S = 1.0
 
 WATCH_JS = """
@@ -50,6 +54,27 @@ const note = () => {
 };
 new MutationObserver(note).observe(document.querySelector('#robots tbody'), {childList: true, subtree: true});
 """
+
+
+LIVE_JS = """
+window.liveSeen = {};
+const look = () => {
+  const row = document.querySelector('#robots tr[data-name="live_bot"]');
+  if (!row) return;
+  const state = row.cells[2].textContent + ' / ' + row.cells[3].textContent;
+  if (!(state in window.liveSeen)) window.liveSeen[state] = Date.now();
+};
+new MutationObserver(look).observe(document.querySelector('#robots tbody'),
+                                   {childList: true, subtree: true, characterData: true});
+"""
+
+
+def log_time(text, pattern):
+    """Epoch seconds of the last log line matching ``pattern`` (the log's local-time stamps, ms resolution)."""
+    stamps = re.findall(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d{3}) .*" + pattern, text, re.M)
+    if not stamps:
+        return None
+    return datetime.datetime.strptime(stamps[-1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
 
 
 def percentile(values, fraction):
@@ -96,11 +121,13 @@ class StreamClock:
 def main(argv=None):
     parser = argparse.ArgumentParser(prog="bench_console", description=__doc__.split("\n\n")[0])
     parser.add_argument("--rounds", type=int, default=ROUNDS)
+    parser.add_argument("--live-rounds", type=int, default=LIVE_ROUNDS)
     parser.add_argument("--no-write", action="store_true", help="print the results, leave PERFORMANCE.md alone")
     args = parser.parse_args(argv)
     load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-console-") as tmp, ProcessGroup(log_dir=tmp) as procs:
-        master = RcmpAgent(procs, os.path.join(tmp, "master"), args=["--no-stderr", "--log-level", "WARNING"])
+        master = RcmpAgent(procs, os.path.join(tmp, "master"), args=["--no-stderr"],
+                           ros_port_base=ros_port_base())
         master.start()
         nodes = [{"sn_package": "robotics_test", "sn_type": "talker.py", "sn_name": f"talker_{j}",
                   "sn_params": f"_topic:=chat_{j}", "sn_side": "S" if j % 2 else "R"} for j in range(ITEMS)]
@@ -135,6 +162,31 @@ def main(argv=None):
                     wait_until(lambda: key in stream.seen, timeout=10, interval=0.005,
                                message=f"the stream to push {key}")
                     push.append(stream.seen[key] - started)
+            # live state: a real robot agent connects and pairs (no RDAPI call); timed from the master's log lines
+            # ("robot live_bot connected from", "robot live_bot paired") to the page showing each state
+            status, answer = master.post("/platform_instance/provisioning",
+                                         {"pi_name": "live_bot", "pi_service_logic": "empty"})
+            assert status == 200, answer
+            connect, pair = [], []
+            for n in range(args.live_rounds):
+                driver.execute_script(LIVE_JS)
+                robot = RcmpAgent(procs, os.path.join(tmp, f"live_bot{n}"), role="robot", name="live_bot",
+                                  vpn_address="127.0.0.2", ip_master="127.0.0.1", ic_port=master.ic_port)
+                robot.start()
+                seen = wait_until(lambda: (lambda s: s if "connected / paired" in s else None)(
+                    driver.execute_script("return window.liveSeen")), timeout=60, interval=0.05,
+                    message="the page to show live_bot paired")
+                text = master.log_text()
+                connected_at = log_time(text, r"robot live_bot connected from")
+                paired_at = log_time(text, r"robot live_bot paired")
+                if "connected / not paired" in seen:
+                    connect.append(seen["connected / not paired"] / 1000.0 - connected_at)
+                pair.append(seen["connected / paired"] / 1000.0 - paired_at)
+                robot.stop()
+                wait_until(lambda: driver.execute_script(
+                    "const r = document.querySelector('#robots tr[data-name=\"live_bot\"]');"
+                    "return r && r.cells[2].textContent === 'not connected'"), timeout=30,
+                    message="the page to show live_bot gone")
             errors = [e for e in browser.console_errors() if "Uncaught" in e.get("message", "")]
         finally:
             if stream is not None:
@@ -148,11 +200,12 @@ def main(argv=None):
         ms = [v * 1000 for v in values]
         return (f"| {what} | {len(ms)} | {statistics.median(ms):.0f} | {percentile(ms, 0.99):.0f} | "
                 f"{max(ms):.0f} |")
-    p99 = percentile(page, 0.99)
+    p99 = percentile(page + pair + connect, 0.99)
     verdict = "met" if p99 < TARGET_P99_S else "NOT met"
     body = "\n".join([
         f"{ROBOTS} robots provisioned (service logic with {ITEMS} service nodes), none connected; each change is "
-        f"one RDAPI write (provisioning a robot, then removing it), {args.rounds} of each. Timed from just "
+        f"one RDAPI write (provisioning a robot, then removing it), {args.rounds} of each, or a robot agent "
+        f"connecting and pairing, {args.live_rounds} times. Timed from just "
         f"before the RDAPI call to the page's DOM showing it (headless Chromium, a MutationObserver noting "
         f"`Date.now()`), and to the push reaching a plain event-stream client.",
         "",
@@ -160,6 +213,13 @@ def main(argv=None):
         "| --- | --- | --- | --- | --- |",
         row("the page (DOM updated)", page),
         row("the event stream (push received)", push),
+        row("the page, a robot agent connecting (from the master's log line)", connect) if connect else
+        "| the page, a robot agent connecting | 0 | (the page went straight to paired) | | |",
+        row("the page, its space paired (from the master's log line)", pair),
+        "",
+        "The last two rows are live state without any RDAPI call: a real robot agent (service logic `empty`) "
+        "started and stopped again; their times start at the master's log lines, which have millisecond stamps "
+        "and are written a little after the change itself.",
         "",
         f"Rendering a full snapshot of {ROBOTS} robots in the page: {render_ms:.0f} ms. "
         f"Uncaught JavaScript errors: {len(errors)}.",
@@ -168,7 +228,7 @@ def main(argv=None):
         f"engineers' tests were running; the machine has {os.cpu_count()} cores).",
         "",
         f"Target (issue 11): p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
-        f"({p99 * 1000:.0f} ms). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
+        f"({p99 * 1000:.0f} ms over all rows). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
         f"the p50.",
     ])
     print(body)
