@@ -33,6 +33,7 @@ START_TIMEOUT = 180.0            # seconds the master waits for the robot to sta
 STOP_TIMEOUT = 60.0              # seconds the master waits for the robot to stop them
 HELLO_TIMEOUT = 300.0            # a robot's last resort; it waits for the answer while the master is heard
 HELLO_WAIT = 10.0                # seconds a new connection has to send its hello before the master closes it
+HELLO_PATIENCE = 5               # until hello is answered, a robot bears this many times the usual silence
 RETRY_CAP = 5.0                  # longest wait between two hellos (plus up to RETRY_JITTER)
 RETRY_JITTER = 1.0               # random seconds added to each wait, so that a fleet does not come back together
 TAILS_TIMEOUT = 5.0               # seconds the master waits for the tails of a robot's item logs (the console)
@@ -744,15 +745,10 @@ class RobotAgent(service.Service):
         self.peer = peer
         self.accepted = False
         # heartbeats from the start: a master that is slow to answer hello but still answers beats is waited
-        # for (hanging up would throw its work away and queue us again); a silent one is left
-        self.watchdog = rcmp_wd.Watchdog(
-            self.reactor, self.config.heartbeat_interval, self.config.heartbeat_misses,
-            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.config.heartbeat_interval *
-                                           self.config.heartbeat_misses),
-            last_heard=lambda: peer.last_heard,
-            on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
-            name="the master")
-        self.watchdog.start()
+        # for (hanging up would throw its work away and queue us again). Until the answer, even a silent master
+        # gets HELLO_PATIENCE times the usual window: one flooded by a fleet (forking the processes of many
+        # spaces) may not read for seconds, and we have nothing running yet that its silence would put at risk
+        self._watch(peer, self.config.heartbeat_misses * HELLO_PATIENCE)
         asked = self.reactor.seconds()
         try:
             hello = {"name": self.config.name, "address": self.address, "robot": self.config.role == "robot",
@@ -774,9 +770,21 @@ class RobotAgent(service.Service):
         self._last_problem = None
         self._told_to_go = False
         self.backoff.reset()
+        self._stop_watchdog()
+        self._watch(peer, self.config.heartbeat_misses)
         log.info("connected to master %s as %s (%s); hello answered in %.3f s", master, self.config.name,
                  self.address, self.reactor.seconds() - asked)
         return answer
+
+    def _watch(self, peer, misses):
+        self.watchdog = rcmp_wd.Watchdog(
+            self.reactor, self.config.heartbeat_interval, misses,
+            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.config.heartbeat_interval *
+                                           self.config.heartbeat_misses),
+            last_heard=lambda: peer.last_heard,
+            on_gone=lambda silent: peer.abort(f"no heartbeat from the master for {silent:.1f} s"),
+            name="the master")
+        self.watchdog.start()
 
     def _stop_watchdog(self):
         if self.watchdog is not None:

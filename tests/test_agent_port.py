@@ -611,6 +611,30 @@ class SlowMasterTests(unittest.TestCase):
         self.assertIs(agent.peer, peer)
 
     @defer.inlineCallbacks
+    def test_a_master_stalled_past_the_window_during_hello_is_waited_for(self):
+        handler = types.SimpleNamespace(hellos=[])
+
+        def request_received(peer, op, body):
+            if op == "hello":
+                peer.admit()
+                handler.hellos.append(peer)
+                peer.transport.stopReading()       # busy forking a fleet's processes: reads nothing for a while
+                d = defer.Deferred()
+                stall = 0.1 * 3 * 3                # three times the usual window (0.3 s), within the patience
+
+                def resume():
+                    peer.transport.startReading()
+                    d.callback({"accepted": True, "master": "m", "heartbeat_interval": 0.1, "heartbeat_misses": 3})
+                reactor.callLater(stall, resume)
+                return d
+            return {}
+        handler.request_received = request_received
+        agent = yield self.start(handler)
+        yield until(lambda: agent.accepted, timeout=5)
+        self.assertEqual(len(handler.hellos), 1)          # the same connection: nobody hung up
+        self.assertEqual(agent.watchdog.limit, 0.1 * 3)   # accepted: the usual window again
+
+    @defer.inlineCallbacks
     def test_a_silent_master_is_left_and_tried_again(self):
         handler = types.SimpleNamespace(hellos=[])
 
