@@ -200,7 +200,7 @@ def main(argv=None):
         ms = [v * 1000 for v in values]
         return (f"| {what} | {len(ms)} | {statistics.median(ms):.0f} | {percentile(ms, 0.99):.0f} | "
                 f"{max(ms):.0f} |")
-    p99 = percentile(page + pair + connect, 0.99)
+    p99 = max(percentile(values, 0.99) for values in (page, pair, connect) if values)
     verdict = "met" if p99 < TARGET_P99_S else "NOT met"
     body = "\n".join([
         f"{ROBOTS} robots provisioned (service logic with {ITEMS} service nodes), none connected; each change is "
@@ -228,7 +228,7 @@ def main(argv=None):
         f"engineers' tests were running; the machine has {os.cpu_count()} cores).",
         "",
         f"Target (issue 11): p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
-        f"({p99 * 1000:.0f} ms over all rows). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
+        f"(the largest p99 of the page rows: {p99 * 1000:.0f} ms). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
         f"the p50.",
     ])
     print(body)
