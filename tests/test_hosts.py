@@ -86,6 +86,17 @@ def test_link_down_cuts_and_link_up_restores(lan):
     assert wait_until(lambda: ask(b, a.address) == "alpha:hi", timeout=10)
 
 
+def test_fresh_paths_start_empty_and_stay_the_hosts(lan):
+    a = lan.add_host("alpha", private=hostlib.INSTALL_PATHS, fresh=hostlib.INSTALL_FRESH)
+    assert a.run(["ls", "-A", "/opt"]).stdout.split() == []
+    a.run(["mkdir", "/opt/rcm-platform"])
+    a.run(["touch", "/opt/rcm-platform/x", os.path.join(hostlib.INSTALL_FRESH[1], "y.py")])
+    assert os.path.isfile(a.private_path("/opt/rcm-platform/x"))
+    assert os.path.isfile(a.private_path(os.path.join(hostlib.INSTALL_FRESH[1], "y.py")))
+    assert not os.path.exists(os.path.join(hostlib.INSTALL_FRESH[1], "y.py"))
+    assert a.run(["test", "-x", "/usr/bin/python3"]).returncode == 0
+
+
 def test_private_paths_are_seen_only_by_their_host(lan):
     a = lan.add_host("alpha", private=("/opt", "/usr/local"))
     b = lan.add_host("beta", private=("/opt",))
@@ -180,7 +191,7 @@ def test_a_killed_run_is_swept_by_the_next_one(procs, tmp_path):
     # the holders die with their owner (pdeathsig): the mount namespaces and overlays go with them
     wait_until(lambda: not any(os.path.exists(f"/proc/{pid}") for pid in holders), timeout=10,
                message="the holders to die with their owner")
-    assert [n for n in netns_names() if n.startswith(run_id + "-")]  # the names stay until someone sweeps
+    # the names stay until the next Lan on this machine sweeps them (maybe another test run's, at any moment)
     with Lan(log_dir=str(tmp_path)):
         assert not [n for n in netns_names() if n.startswith(run_id + "-")]
     assert not os.path.exists(os.path.join(hostlib.STATE_ROOT, run_id))
@@ -201,3 +212,33 @@ def test_a_reused_pid_does_not_keep_a_dead_runs_namespaces(tmp_path):
         for name in (stale, other):
             subprocess.run(["ip", "netns", "del", name], stderr=subprocess.DEVNULL)
     assert stale not in netns_names() and other not in netns_names()
+
+
+def test_hidden_paths_and_empty_folders_below_private_ones(lan, tmp_path):
+    base = tmp_path / "machine"
+    (base / "rc2.d").mkdir(parents=True)
+    (base / "rc2.d" / "S01other").write_text("")
+    (base / "installed").mkdir()
+    (base / "installed" / "cfg").write_text("the machine's own")
+    (base / "kept").write_text("seen")
+    host = lan.add_host("alpha", private=(str(base),), hide=(str(base / "installed"), str(base / "later")),
+                        empty=(str(base / "rc2.d"),))
+    listing = host.run(["ls", "-A", base]).stdout.split()
+    assert "kept" in listing and "installed" not in listing and "rc2.d" in listing
+    assert host.run(["ls", "-A", base / "rc2.d"]).stdout.split() == []
+    # what the machine installs after the host was made stays hidden too
+    (base / "later").mkdir()
+    (base / "later" / "x").write_text("")
+    assert host.run(["test", "-e", base / "later"], check=False).returncode == 1
+    # the host's own installation there is its own
+    host.run(["mkdir", base / "installed"])
+    host.run(["touch", base / "installed" / "mine"])
+    assert host.run(["ls", "-A", base / "installed"]).stdout.split() == ["mine"]
+    assert sorted(os.listdir(base / "installed")) == ["cfg"]
+    assert oct(os.stat(host.private_path(str(base))).st_mode & 0o777) == oct(os.stat(base).st_mode & 0o777)
+
+
+def test_install_hosts_do_not_see_this_machines_rcm_installation():
+    assert "/opt/rcm-platform" in hostlib.RCM_INSTALLATION and "/etc/init.d/rcmpd" in hostlib.RCM_INSTALLATION
+    bases = hostlib.INSTALL_PATHS + hostlib.INSTALL_FRESH
+    assert all(any(p.startswith(base + "/") for base in bases) for p in hostlib.RCM_INSTALLATION)

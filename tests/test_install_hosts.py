@@ -22,7 +22,7 @@ import stat
 
 import pytest
 
-from tests.support.hosts import INSTALL_PATHS
+from tests.support.hosts import INSTALL_FRESH, INSTALL_PATHS
 from tests.support.polling import wait_until
 from tests.test_install import build_zip
 
@@ -30,7 +30,7 @@ pytestmark = [pytest.mark.netns, pytest.mark.slow,
               pytest.mark.skipif(os.geteuid() != 0, reason="test hosts need root"),
               pytest.mark.skipif(not os.path.exists("/usr/sbin/update-rc.d"), reason="needs update-rc.d")]
 
-HOST_PATHS = INSTALL_PATHS + ("/home",)
+HOST_PATHS = {"private": INSTALL_PATHS + ("/home",), "fresh": INSTALL_FRESH}
 USER_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 ROOT_ENV = {"PATH": USER_PATH, "HOME": "/root", "LANG": "C", "USER": "root", "LOGNAME": "root"}
 VPN_SUBNET = "198.51.100.0/24"
@@ -99,8 +99,8 @@ def process_env(pid):
 # ---------------------------------------------------------------------------------------------------------------
 
 def test_master_and_robot_zips_installed_in_two_hosts_pair_over_the_platforms_vpn(lan, tmp_path):
-    master = lan.add_host("master", private=HOST_PATHS)
-    robot = lan.add_host("robot", private=HOST_PATHS)
+    master = lan.add_host("master", **HOST_PATHS)
+    robot = lan.add_host("robot", **HOST_PATHS)
     master_pkg = build_zip(tmp_path / "m", "master")
     robot_pkg = build_zip(tmp_path / "r", "robot")
     try:
@@ -192,7 +192,7 @@ EVIL_SITECUSTOMIZE = "import os\nopen('/home/alice/evil/imported-by-%d' % os.get
 
 
 def test_root_daemon_keeps_away_from_a_user_owned_workspace(lan, tmp_path):
-    host = lan.add_host("master", private=HOST_PATHS)
+    host = lan.add_host("master", **HOST_PATHS)
     pkg = build_zip(tmp_path, "master")
     host.run(["useradd", "-m", "-s", "/bin/bash", "alice"])
     uid = int(host.run(["id", "-u", "alice"]).stdout)
@@ -308,7 +308,7 @@ def test_fiware_items_of_a_user_owned_workspace_run_as_its_owner_with_its_code(l
     """robotics.zip (FIROS, rcm_driver, robotics_msgs built into alice's workspace) on a master host; a robot
     pairs with fiware_base: FIROS and rcm_driver run as alice, and FIROS imports robotics_msgs from her
     workspace (its code paths reach her children only). The root agent itself never ran her code."""
-    master = lan.add_host("master", private=HOST_PATHS)
+    master = lan.add_host("master", **HOST_PATHS)
     robot = lan.add_host("robot")
     pkg = build_zip(tmp_path)  # robotics.zip
     master.run(["useradd", "-m", "-s", "/bin/bash", "alice"])

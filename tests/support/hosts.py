@@ -19,7 +19,15 @@ What a ``Lan`` builds (root only; CAP_NET_ADMIN and CAP_SYS_ADMIN):
   different zips into ``/opt/rcm-platform`` at once, and the real ``/opt``, ``/usr/local``, ``/etc`` are never
   touched (no ``flock /work/install.lock`` needed). Overlays are used rather than bind mounts of empty folders
   because an installer needs the real content beside its own (``/etc/init.d/*``, ``/usr/lib/python3``);
-  ``Host.private_path(path)`` names the host's upper copy of a path, to inspect what the host wrote.
+  ``Host.private_path(path)`` names the host's upper copy of a path, to inspect what the host wrote. Below the
+  private folders the host does not see this machine's own rcm-platform installation (``RCM_INSTALLATION``,
+  whited out in the upper layer, so also what ``tests/test_install.py`` installs there later) and sees the
+  ``/etc/rc?.d`` folders empty (opaque): its installer starts from a clean machine. Folders whose machine content
+  a host does not need and that another test may change while the host lives (``/opt``, where
+  ``tests/test_install.py`` installs and removes ``/opt/rcm-platform``, and the package's dist-packages) are
+  ``fresh=`` instead: covered by an empty folder of the host's own (a bind mount), because overlayfs does not
+  allow its lower layer to change under it. Hosts for an installation: ``private=INSTALL_PATHS,
+  fresh=INSTALL_FRESH``.
 
 Commands: ``host.run(argv)`` (a list, never a shell; returns ``CompletedProcess``, raises ``HostCommandError``
 with the output when ``check`` and it fails), ``host.start(argv)`` (a long-running child owned by the LAN's
@@ -47,7 +55,9 @@ import os
 import re
 import shutil
 import signal
+import stat
 import subprocess
+import sysconfig
 import tempfile
 import threading
 
@@ -58,7 +68,16 @@ PREFIX = "rcmt"
 LAN_SUBNET = "203.0.113.0/24"
 VPN_SUBNET = "198.51.100.0/24"
 # what an rcm-platform installer writes to (section 5 of CONTRACTS.md), for hosts whose installed files differ
-INSTALL_PATHS = ("/opt", "/usr/local", "/etc", "/root", "/var/log", "/run")
+INSTALL_PATHS = ("/usr/local", "/etc", "/root", "/var/log", "/run")
+# folders an rcm-platform installer writes whose machine content a host does not need: replaced by empty ones
+INSTALL_FRESH = ("/opt", sysconfig.get_paths()["purelib"])
+# what an rcm-platform installation of this machine (tests/test_install.py may be running) places below those: a
+# host never sees it, so its own installation starts from nothing (whiteouts in the overlay; the rc?.d folders
+# start empty, as update-rc.d's link names vary)
+RCM_INSTALLATION = ("/opt/rcm-platform", "/usr/local/bin/rcmp_n",
+                    os.path.join(sysconfig.get_paths()["purelib"], "rcm_platform"),
+                    "/etc/init.d/rcmpd", "/etc/default/rcmpd", "/run/rcmpd.pid", "/root/rcmp_ws")
+EMPTY_DIRS = tuple(f"/etc/rc{level}.d" for level in "0123456S")
 HOST_NAME = re.compile(r"^[a-z][a-z0-9]{0,11}$")
 STATE_ROOT = tempfile.gettempdir()
 
@@ -185,13 +204,16 @@ atexit.register(_close_all_open)
 class Host:
     """One host of a ``Lan``: a network namespace with ``eth0`` and a mount namespace held by a holder process."""
 
-    def __init__(self, lan, name, index, address, private):
+    def __init__(self, lan, name, index, address, private, hide=RCM_INSTALLATION, empty=EMPTY_DIRS, fresh=()):
         self.lan = lan
         self.name = name
         self.netns = f"{lan.run_id}-{name}"
         self.address = address
         self.port = f"p{index}"  # the LAN end of the veth, in the LAN namespace
-        self.private = tuple(private)
+        self.private = tuple(os.path.normpath(p) for p in private)
+        self.hide = tuple(os.path.normpath(p) for p in hide)
+        self.empty = tuple(os.path.normpath(p) for p in empty)
+        self.fresh = tuple(os.path.normpath(p) for p in fresh)
         self.state_dir = os.path.join(lan.state_dir, name)
         self.holder = None
 
@@ -212,8 +234,10 @@ class Host:
             start_new_session=True)
         own_mnt = os.readlink("/proc/self/ns/mnt")
         wait_until(lambda: self._holder_ready(own_mnt), timeout=10, message=f"the holder of host {self.name}")
-        for path in self.private:
+        for path in sorted(self.private, key=len):
             self._overlay(path)
+        for path in sorted(self.fresh, key=len):
+            self._fresh(path)
 
     def _holder_ready(self, own_mnt):
         if self.holder.poll() is not None:
@@ -233,17 +257,65 @@ class Host:
         work = os.path.join(self.state_dir, "work", key)
         os.makedirs(upper)
         os.makedirs(work)
+        self._mirror_dir(path, upper)
+        # before mounting (changing the upper layer of a mounted overlay is undefined): the machine's own
+        # installation is whited out, the rc?.d folders made opaque (empty); both hold even for files the
+        # machine creates later
+        for hidden in self.hide + self.empty:
+            rel = self._below(hidden, path)
+            if rel is None:
+                continue
+            parent = upper
+            for part in rel.split("/")[:-1]:
+                lower = os.path.join(path, os.path.relpath(parent, upper), part)
+                parent = os.path.join(parent, part)
+                if not os.path.isdir(parent):
+                    os.mkdir(parent)
+                    if os.path.isdir(lower):
+                        self._mirror_dir(lower, parent)
+            target = os.path.join(upper, rel)
+            if hidden in self.empty:
+                os.mkdir(target)
+                if os.path.isdir(os.path.join(path, rel)):
+                    self._mirror_dir(os.path.join(path, rel), target)
+                os.setxattr(target, "trusted.overlay.opaque", b"y")
+            else:
+                os.mknod(target, stat.S_IFCHR | 0o600, os.makedev(0, 0))  # an overlayfs whiteout
         self.run(["mount", "-t", "overlay", "overlay", "-o",
                   f"lowerdir={path},upperdir={upper},workdir={work}", path])
+
+    def _fresh(self, path):
+        """Cover ``path`` (inside the host only) with an empty folder of the host's own, owner and mode as the real
+        one: nothing of the machine shows there, and the machine changing its folder cannot confuse an overlay."""
+        if not os.path.isabs(path) or not os.path.isdir(path):
+            raise ValueError(f"fresh path {path!r} must be an existing absolute directory")
+        own = os.path.join(self.state_dir, "fresh", path.strip("/").replace("/", "_"))
+        os.makedirs(own)
+        self._mirror_dir(path, own)
+        self.run(["mount", "--bind", own, path])
+
+    @staticmethod
+    def _below(path, base):
+        """``path`` relative to ``base`` when strictly below it, else None."""
+        if path.startswith(base.rstrip("/") + "/"):
+            return os.path.relpath(path, base)
+        return None
+
+    @staticmethod
+    def _mirror_dir(real, copy):
+        """Give a folder of the upper layer the real folder's owner and mode (the upper one's win in the view)."""
+        st = os.stat(real)
+        os.chown(copy, st.st_uid, st.st_gid)
+        os.chmod(copy, stat.S_IMODE(st.st_mode))
 
     def private_path(self, path):
         """Where this host's own changes below ``path`` are stored (the overlay's upper layer), seen from outside."""
         path = os.path.normpath(path)
-        for base in sorted(self.private, key=len, reverse=True):
-            base = os.path.normpath(base)
+        bases = [(b, "fresh") for b in self.fresh] + [(b, "upper") for b in self.private]
+        for base, layer in sorted(bases, key=lambda item: len(item[0]), reverse=True):
             if path == base or path.startswith(base.rstrip("/") + "/"):
                 key = base.strip("/").replace("/", "_") or "root"
-                return os.path.join(self.state_dir, "upper", key, os.path.relpath(path, base))
+                return os.path.join(self.state_dir, layer, key, os.path.relpath(path, base))
         raise ValueError(f"{path} is not below a private path of host {self.name}")
 
     # ---- commands
@@ -333,9 +405,13 @@ class Lan:
             self.close(check=False)
             raise
 
-    def add_host(self, name, address=None, private=()):
+    def add_host(self, name, address=None, private=(), hide=RCM_INSTALLATION, empty=EMPTY_DIRS, fresh=()):
         """A new host ``name`` (lowercase letters and digits, at most 12) on this LAN; ``private`` lists
-        directories whose content the host keeps to itself (``INSTALL_PATHS`` for an rcm-platform install)."""
+        directories whose content the host keeps to itself (``INSTALL_PATHS`` for an rcm-platform install).
+        Below them, the host does not see the paths in ``hide`` (default: this machine's own rcm-platform
+        installation) and sees the folders in ``empty`` empty (default: /etc/rc?.d). The folders in ``fresh``
+        are replaced by empty ones of the host's own (``INSTALL_FRESH`` for an install: /opt and the
+        rcm_platform package's dist-packages)."""
         if self.closed:
             raise RuntimeError("this LAN is closed")
         if not HOST_NAME.match(name) or name == "lan" or name in self.hosts:
@@ -343,7 +419,7 @@ class Lan:
         address = str(ipaddress.ip_address(address)) if address else str(next(self._addresses))
         if ipaddress.ip_address(address) not in self.network:
             raise ValueError(f"{address} is not in {self.network}")
-        host = Host(self, name, len(self.hosts) + 1, address, private)
+        host = Host(self, name, len(self.hosts) + 1, address, private, hide, empty, fresh)
         self.hosts[name] = host
         try:
             host._create()
