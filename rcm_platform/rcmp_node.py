@@ -8,7 +8,8 @@ Owns:
 - the configuration files and their validation: ``HOME/init.cfg`` (robot ``robot=yes`` or server VM
   ``robot=no``) or, when it is absent, the master's optional ``HOME/.init.cfg``; every ``[main]`` key of
   CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses``, ``log_max_bytes`` and the
-  master's ``rdapi_tls_cert`` / ``rdapi_tls_key`` (HTTPS, loaded at start) and ``allowed_origins`` (CORS)
+  master's ``rdapi_tls_cert`` / ``rdapi_tls_key`` (HTTPS, loaded at start) and ``allowed_origins`` (CORS), and
+  ``run_as`` (the user service items run as: ``resolve_run_as``)
   (``Config``, ``ConfigError``, ``load_config``); a bad value stops the agent with one line naming the file,
   the key and the problem, exit status 2;
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
