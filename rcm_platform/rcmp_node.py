@@ -658,7 +658,7 @@ def build_agent(config, reactor, on_error=None):
         return build(config, reactor)
     table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
     top = rcmp_ms.TableService(table)   # stops what the VPN and the agent left, after both stopped
-    vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor)
+    vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor, lambda: platform_address(config))
     rcmp_vpn.VpnFirst(vpn, rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table),
                                              on_error or log.error)).setServiceParent(top)
     return top
@@ -765,13 +765,27 @@ def _fail(message, status):
     return status
 
 
+def _vpn_default_remote(home):
+    """The address client files name by default (``rcmp_n vpn init`` without --remote): ``ext_interface``'s."""
+    from . import rcmp_vpn
+    try:
+        config = load_config(home)
+    except ConfigError as exc:
+        raise rcmp_vpn.VpnError(str(exc)) from None
+    remote = rdapi_address(config)
+    if remote is None:
+        raise rcmp_vpn.VpnError(f"no IPv4 address on the external interface '{config.ext_interface}' to put in "
+                                f"client files: give --remote HOST")
+    return remote
+
+
 def main(argv=None):
     """Run the agent; returns the exit status (0 after SIGTERM/SIGINT, 2 on a configuration error, 1 otherwise)."""
     args = parse_args(sys.argv[1:] if argv is None else argv)
     os.umask(UMASK)
     if args.command == "vpn":
         from . import rcmp_vpn
-        return rcmp_vpn.run(args)
+        return rcmp_vpn.run(args, default_remote=_vpn_default_remote)
     if args.command == "token":
         return token_command(args)
     try:

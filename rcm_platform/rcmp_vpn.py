@@ -322,7 +322,7 @@ def _host_port(value):
 
 # -- the commands -----------------------------------------------------------------------------------------
 
-def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False):
+def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False, default_remote=None):
     """Create HOME/vpn: CA, server certificate and key, tls-crypt key, CRL, ccd/, server.conf, register."""
     home = os.path.abspath(home)
     if not os.path.isdir(home):
@@ -335,15 +335,11 @@ def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False):
                        f"far stops working)")
     network = subnet or ipaddress.IPv4Network(DEFAULT_SUBNET)
     if remote is None:
-        from . import rcmp_node
-        try:
-            config = rcmp_node.load_config(home)
-        except rcmp_node.ConfigError as exc:
-            raise VpnError(str(exc)) from None
-        remote = rcmp_node.rdapi_address(config)
-        if remote is None:
-            raise VpnError(f"no IPv4 address on the external interface '{config.ext_interface}' to put in client "
-                           f"files: give --remote HOST")
+        # ``default_remote(home)`` (rcmp_node passes it in: the address of ``ext_interface``) returns the address
+        # or raises VpnError with its sentence; this module never imports rcmp_node (imports go one way down)
+        if default_remote is None:
+            raise VpnError("no address to put in client files: give --remote HOST")
+        remote = default_remote(home)
     server_address = str(next(network.hosts()))
 
     ca_key, ca_cert = _make_ca()
@@ -595,8 +591,9 @@ class ManagedVpn(_service_base()):
     name = "vpn"
     KEY = "openvpn"
 
-    def __init__(self, config, conf_path, table, reactor):
+    def __init__(self, config, conf_path, table, reactor, address_of):
         self.config = config
+        self.address_of = address_of          # () -> the platform address or None (rcmp_node.platform_address)
         self.conf_path = conf_path
         self.table = table
         self.reactor = reactor
@@ -648,8 +645,7 @@ class ManagedVpn(_service_base()):
         self._address_call = None
         if not self.running:
             return
-        from . import rcmp_node
-        address = rcmp_node.platform_address(self.config)
+        address = self.address_of()
         if address is not None and not self._up_logged:
             self._up_logged = True
             log.info("managed VPN: up, %s has address %s", self.config.vpn_interface, address)
@@ -663,8 +659,7 @@ class ManagedVpn(_service_base()):
 
     def wait_for_address(self):
         from twisted.internet import defer
-        from . import rcmp_node
-        address = rcmp_node.platform_address(self.config) if self.running else None
+        address = self.address_of() if self.running else None
         if address is not None:
             return defer.succeed(address)
         d = defer.Deferred()
@@ -816,14 +811,14 @@ def _staged_file(output):
     return stage
 
 
-def run(args, out=None, err=None):
-    """Run a parsed ``rcmp_n vpn ...`` command; returns the exit status."""
+def run(args, out=None, err=None, default_remote=None):
+    """Run a parsed ``rcmp_n vpn ...`` command; returns the exit status. ``default_remote(home)``: see ``init``."""
     out = out or sys.stdout
     err = err or sys.stderr
     home = args.home
     try:
         if args.vpn_command == "init":
-            register = init(home, args.subnet, args.port, args.remote, args.force)
+            register = init(home, args.subnet, args.port, args.remote, args.force, default_remote)
             out.write(f"VPN created in {vpn_dir(home)}: subnet {register['subnet']}, master at "
                       f"{register['server_address']}, clients reach {register['remote']} UDP port "
                       f"{register['port']}\n")
