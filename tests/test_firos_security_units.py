@@ -100,18 +100,29 @@ class FakeFiros:
         return []
 
 
-@pytest.fixture
-def small_server(monkeypatch):
+def _small_server(monkeypatch, deadline):
     """A real FIROS HTTP server on 127.0.0.1 with 2 workers, 1 waiting place, 1 connection per client and a
-    1 s request deadline."""
-    monkeypatch.setattr(http, "REQUEST_DEADLINE", 1.0)
+    ``deadline`` s request deadline; yields (port, pool)."""
+    monkeypatch.setattr(http, "REQUEST_DEADLINE", deadline)
     pool = http.WorkerPool(workers=2, queue_limit=1, per_client=1)
     servers = http.make_servers(FakeFiros(), 0, ["127.0.0.1"], pool=pool)
     http.serve_in_thread(servers[0])
     try:
-        yield servers[0].server_address[1]
+        yield servers[0].server_address[1], pool
     finally:
         http.close_servers(servers)
+
+
+@pytest.fixture
+def small_server(monkeypatch):
+    for port, _pool in _small_server(monkeypatch, 1.0):
+        yield port
+
+
+@pytest.fixture
+def small_server_and_pool(monkeypatch):
+    """As small_server, with a deadline long enough for the test to fill the pool step by step (3 s)."""
+    yield from _small_server(monkeypatch, 3.0)
 
 
 def _connect(port, source):
@@ -131,19 +142,31 @@ def _read_all(sock):
         return data
 
 
-def test_per_client_cap_and_pool_limit_answer_503_at_once(small_server):
-    first = _connect(small_server, "127.0.0.2")
+def test_per_client_cap_and_pool_limit_answer_503_at_once(small_server_and_pool):
+    port, pool = small_server_and_pool
+
+    def held(count, waiting):    # the pool holds ``count`` connections, ``waiting`` of them not yet at a worker
+        wait_until(lambda: pool.held() == count and pool.waiting() == waiting, timeout=2,
+                   message=f"the pool to hold {count} connections, {waiting} waiting")
+
+    first = _connect(port, "127.0.0.2")
     first.sendall(b"GET /robots HTTP/1.1\r\n")        # holds its worker until the deadline
-    second = _connect(small_server, "127.0.0.2")         # same client: over its cap of 1
+    held(1, 0)
+    second = _connect(port, "127.0.0.2")                 # same client: over its cap of 1
     answer = _read_all(second)
     assert answer.startswith(b"HTTP/1.1 503 ") and b"Retry-After: 1" in answer, answer
     assert json.loads(answer.split(b"\r\n\r\n", 1)[1])["result"] == "ERROR"
-    others = [_connect(small_server, f"127.0.0.{i}") for i in (3, 4, 5)]
-    for sock in others:
-        sock.sendall(b"GET /robots HTTP/1.1\r\n")
-    # 2 workers + 1 waiting place: of the 4 slow clients one is refused at once
-    answers = [_read_all(sock) for sock in [first] + others]
-    assert sum(a.startswith(b"HTTP/1.1 503 ") for a in answers) == 1, answers
+    # 2 workers + 1 waiting place, filled one client at a time: the fourth slow client is refused at once
+    others = []
+    for i, state in ((3, (2, 0)), (4, (3, 1))):
+        others.append(_connect(port, f"127.0.0.{i}"))
+        others[-1].sendall(b"GET /robots HTTP/1.1\r\n")
+        held(*state)
+    refused = _connect(port, "127.0.0.5")
+    assert _read_all(refused).startswith(b"HTTP/1.1 503 ")
+    answers = [_read_all(sock) for sock in [first] + others]     # each served (cut at its deadline), none a 503
+    assert not any(a.startswith(b"HTTP/1.1 503 ") for a in answers), answers
+    others.append(refused)
     for sock in [first, second] + others:
         sock.close()
 

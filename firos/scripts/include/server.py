@@ -296,6 +296,15 @@ class WorkerPool:
             self._release(client)
             return False
 
+    def held(self):
+        """Connections the pool holds now: at a worker or waiting for one."""
+        with self._lock:
+            return sum(self._clients.values())
+
+    def waiting(self):
+        """Connections waiting for a worker."""
+        return self._waiting.qsize()
+
     def _release(self, client):
         with self._lock:
             self._clients[client] -= 1
