@@ -212,9 +212,13 @@ def test_an_item_that_fails_shows_its_error_and_its_log(browser, platform, page)
         cells = item_cells(browser, "crash")
         assert cells[:3] == ["crash", "node", "master"]
         assert "imaginary_lidar" in cells[4]
+        # the space's reason and the R item's state come in pushes of their own, maybe after the S item's
+        wait_until(lambda: "crash" in browser.driver.find_element(By.ID, "rv-summary").text, timeout=10,
+                   message="the summary to name the failed item")
         summary = browser.driver.find_element(By.ID, "rv-summary").text
         assert "not paired" in summary and "crash" in summary
-        assert (item_cells(browser, "crash_r") or [""] * 5)[2:4] == ["bot_broken", "failed"]
+        wait_until(lambda: (item_cells(browser, "crash_r") or [""] * 5)[2:4] == ["bot_broken", "failed"],
+                   timeout=10, message="the page to show the robot-side item failed on bot_broken")
 
         def log_of(item):
             found = browser.driver.find_elements(By.CSS_SELECTOR, f'#rv-logs [data-item="{item}"] pre')
