@@ -13,13 +13,16 @@ And what a validated service item becomes when it runs: ``ServiceItem`` (built o
 ``validate_service_item``'s result, so the runtime never sees an unchecked item) with the command lines and the
 environment of its child (``node_argv``, ``launcher_argv``, ``child_env``), the node list of a launcher through
 roslaunch's own loader (``launcher_nodes``), and the graph name a node registers under (``graph_name``).
-``split_params`` is the only place where params are split into words.
+``split_params`` is the only place where params are split into words. ``NodeExecutables`` finds the file that
+``rosrun PKG TYPE`` would run, the way roslaunch finds it, so that a node starts as one exec instead of through
+rosrun's bash, ``catkin_find`` and ``rospack`` (0.2 CPU-seconds per node, measured: docs/PERFORMANCE.md).
 """
 
 import functools
 import os
 import re
 import shlex
+import time
 
 from twisted.internet import defer
 
@@ -328,6 +331,74 @@ def child_env(base_env, ros_master_uri, address, ros_log_dir):
 def node_argv(package, node_type, name, params=""):
     """``rosrun PKG TYPE PARAMS __name:=NAME`` as an argv list (params split as a shell would, no shell)."""
     return ["rosrun", package, node_type, *split_params(params or ""), "__name:=" + name]
+
+
+class NodeExecutables:
+    """The file ``rosrun PKG TYPE`` runs, found with roslaunch's own lookup (``roslib.packages.find_node``) and
+    remembered, so that an agent starting many nodes runs each directly (``direct_argv``).
+
+    Same choice as rosrun: one executable match is it; of two, the one in the package's catkin ``libexec``
+    folder (a devel-space relay of the other). Anything else (no such package or executable, an ambiguous
+    name, an environment whose package paths differ from the agent's, where the lookup would not be the
+    child's) keeps the ``rosrun`` argv, so rosrun's own error reaches the item's log. A remembered file is used
+    while it is still executable; the package crawl is redone after ``ttl`` seconds. Blocking (a crawl of
+    the package path the first time, a few milliseconds): called on the reactor thread when a node starts.
+    rospkg, roslib and catkin are imported when this is made (at an agent's start, on its main thread: an
+    import in a thread while the reactor forks a child can deadlock CPython, and one made during a fleet's
+    arrival would stall the reactor while the cores are busiest).
+    """
+
+    PATH_KEYS = ("ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH")
+
+    def __init__(self, ttl=60.0, clock=time.monotonic):
+        import catkin.find_in_workspaces  # noqa: F401  (see the docstring)
+        import roslib.packages  # noqa: F401
+        import rospkg  # noqa: F401
+        self.ttl = ttl
+        self.clock = clock
+        self._rospack = None
+        self._crawled = None
+        self._found = {}
+
+    def direct_argv(self, argv, env):
+        """``argv`` with ``rosrun PKG TYPE`` replaced by the executable it would run, when that is certain."""
+        if len(argv) < 3 or argv[0] != "rosrun" or argv[1].startswith("-"):
+            return list(argv)
+        if any(env.get(key, "") != os.environ.get(key, "") for key in self.PATH_KEYS):
+            return list(argv)
+        path = self.find(argv[1], argv[2])
+        return [path, *argv[3:]] if path else list(argv)
+
+    def find(self, package, node_type):
+        """The executable's path, or None when rosrun itself must decide (and say what is wrong)."""
+        path = self._found.get((package, node_type))
+        if path is not None and os.access(path, os.X_OK):
+            return path
+        path = self._lookup(package, node_type)
+        if path is None:
+            self._found.pop((package, node_type), None)
+        else:
+            if len(self._found) >= 1024:
+                self._found.clear()
+            self._found[(package, node_type)] = path
+        return path
+
+    def _lookup(self, package, node_type):
+        import rospkg
+        import roslib.packages
+        from catkin.find_in_workspaces import find_in_workspaces
+        now = self.clock()
+        if self._rospack is None or now - self._crawled > self.ttl:
+            self._rospack, self._crawled = rospkg.RosPack(), now
+        try:
+            matches = roslib.packages.find_node(package, node_type, rospack=self._rospack)
+            if len(matches) == 2:
+                libexec = find_in_workspaces(search_dirs=["libexec"], project=package,
+                                             first_matching_workspace_only=True)
+                matches = [m for m in matches if any(m.startswith(d.rstrip("/") + "/") for d in libexec)]
+        except Exception:  # rospkg.ResourceNotFound, an unreadable package.xml: rosrun will say
+            return None
+        return matches[0] if len(matches) == 1 else None
 
 
 def launcher_argv(package, launch_file, params="", sigint_timeout=2.0, sigterm_timeout=1.0):

@@ -12,7 +12,10 @@ This module owns every child process an agent starts and the service spaces buil
   ``spawnProcess`` has no ``setsid``, so argv is prefixed with ``/usr/bin/setsid`` (util-linux; the forked
   child is not a group leader, so setsid calls setsid(2) and execs in place: same pid, and that pid is the
   process group id) and ``/usr/bin/setpriv --pdeathsig TERM`` (the child gets SIGTERM if the agent dies,
-  even by SIGKILL, so a killed agent leaves nothing running). Both exec directly.
+  even by SIGKILL, so a killed agent leaves nothing running). Both exec directly. An agent started as root
+  runs ``AGENT_PRIORITY_BOOST`` nice levels above its children (``raise_agent_priority``; ``/usr/bin/nice``
+  in the same chain puts each child back at the agent's original niceness), so that hellos and heartbeats
+  are served while the ROS processes of many spaces start at once (docs/DESIGN.md).
 * Stopping follows roslaunch: SIGINT to the group, wait (default 5 s), SIGTERM, wait 2 s, SIGKILL. The
   descendants of the child are remembered when the stop begins (roslaunch puts each node in a session of
   its own, so they are not in the launcher's group) and get the SIGTERM and SIGKILL too. "No such process"
@@ -30,8 +33,10 @@ On top of the table, the service-space runtime (see docs/SERVICE_SPACES.md):
   ``ServiceSpace.transition``, which checks the allowed source states, as ``ManagedProcess`` does.
 * ``ServiceSpaceManager`` (master or server side): per connected robot a ``ServiceSpace``: a ROS master
   (``rosmaster --core`` plus ``rosout``, measured leaner and faster than ``roscore``) on a free port from
-  ``config.ros_port_base`` upward, the S-side items, and the R-side items through a ``RemoteRobot``, all
-  spawned at once (rospy nodes and ``roslaunch --wait`` wait for their master); ``paired`` when the ROS
+  ``config.ros_port_base`` upward, then, once that master answers (as roslaunch does: a rospy node given
+  private params, ``_x:=1``, sets them on its master first thing and dies if none answers), the S-side items
+  and the R-side items through a ``RemoteRobot``, all at once; nodes run as one exec each
+  (``rcmp_command.NodeExecutables``), not through rosrun; ``paired`` when the ROS
   master answers and every item has started: its node(s) registered with the space's master (a launcher:
   every node it launches), or, for a node that never registers under its name, it stayed up for the settle
   time. rosout is watched but not waited for (it only collects logs).
@@ -69,8 +74,8 @@ from twisted.internet import defer, protocol, task, threads
 from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
-from rcm_platform.rcmp_command import (CommandError, ServiceItem, child_env, graph_name, items_of_logic,
-                                       launcher_nodes, split_params)
+from rcm_platform.rcmp_command import (CommandError, NodeExecutables, ServiceItem, child_env, graph_name,
+                                       items_of_logic, launcher_nodes, split_params)
 
 xmlrpc.QueryFactory.noisy = False  # one "Starting factory" log line per XML-RPC call to a ROS master is noise
 
@@ -98,6 +103,31 @@ _ALLOWED_SOURCES = {
 
 SETSID = "/usr/bin/setsid"
 SETPRIV = "/usr/bin/setpriv"
+NICE = "/usr/bin/nice"
+AGENT_PRIORITY_BOOST = 5   # an agent runs this many nice levels above the processes it starts (when it may)
+_children_nice = 0         # what children add to the agent's niceness to get back to where it started
+
+
+def raise_agent_priority(boost=AGENT_PRIORITY_BOOST):
+    """Give this agent ``boost`` nice levels over the processes it starts, so that hellos, heartbeats and RDAPI
+    calls are served while those processes (dozens of ROS nodes starting at once) take the cores; children are
+    started through ``nice -n BOOST`` and run at the niceness the agent started with. Only root may lower its
+    niceness: otherwise nothing changes. Call it before any thread starts (niceness is per thread on Linux).
+    Returns the boost applied (0 or ``boost``)."""
+    global _children_nice
+    try:
+        before = os.nice(0)
+        after = os.nice(-boost)
+    except PermissionError:
+        return 0
+    _children_nice = before - after
+    return _children_nice
+
+
+def nice_prefix():
+    """The argv prefix that starts a child at the agent's original niceness ([] when the agent kept its own)."""
+    return [NICE, "-n", str(_children_nice)] if _children_nice else []
+
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07\x1b]*(?:\x07|\x1b\\)?")  # colours, terminal titles
 
 
@@ -185,7 +215,7 @@ def launcher_nodes_as(user, env, package, launch_file, params="", timeout=30.0):
     Blocking: call it in a thread. Raises RuntimeError with roslaunch's message (or why the child failed).
     """
     import subprocess
-    argv = [SETPRIV, *user.setpriv_args(), "--pdeathsig", "KILL", "--", "/usr/bin/python3", "-c",
+    argv = [*nice_prefix(), SETPRIV, *user.setpriv_args(), "--pdeathsig", "KILL", "--", "/usr/bin/python3", "-c",
             LAUNCHER_NODES_PROGRAM, package, launch_file, *split_params(params or "")]
     child = subprocess.Popen(argv, env=user.environment(env), cwd=user.home, stdin=subprocess.DEVNULL,
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
@@ -230,7 +260,7 @@ class OsFacade:
         switch = user.setpriv_args() if user is not None else []
         if user is not None and cwd is None:
             cwd = user.home
-        full = [SETSID, SETPRIV, *switch, "--pdeathsig", "TERM", "--"] + list(argv)
+        full = [SETSID, *nice_prefix(), SETPRIV, *switch, "--pdeathsig", "TERM", "--"] + list(argv)
         transport = self.reactor.spawnProcess(process_protocol, full[0], full, env=env, path=cwd,
                                               childFDs={0: self._devnull, 1: "r", 2: "r"})
         return transport.pid
@@ -714,11 +744,13 @@ class SpaceError(Exception):
 
 
 @defer.inlineCallbacks
-def poll_until(reactor, attempt, interval, timeout=None, on_timeout=None):
+def poll_until(reactor, attempt, interval, timeout=None, on_timeout=None, slowest=None):
     """Call ``attempt()`` (a value or a Deferred) every ``interval`` seconds until it gives something other
     than ``AGAIN``, and fire with that. An exception other than SpaceError counts as AGAIN (a saturated
     machine makes single calls fail); SpaceError ends the poll. Once ``timeout`` seconds have passed the poll
-    fires with ``on_timeout(last exception or None)`` (which may raise) instead of trying again."""
+    fires with ``on_timeout(last exception or None)`` (which may raise) instead of trying again. With
+    ``slowest``, each wait is a quarter longer than the one before, up to ``slowest`` seconds: quick answers
+    are seen quickly, and what takes long (a busy machine) is not asked ever more often."""
     deadline = None if timeout is None else reactor.seconds() + timeout
     while True:
         last = None
@@ -733,6 +765,8 @@ def poll_until(reactor, attempt, interval, timeout=None, on_timeout=None):
         if deadline is not None and reactor.seconds() > deadline:
             return on_timeout(last)
         yield task.deferLater(reactor, interval, lambda: None)
+        if slowest is not None:
+            interval = min(slowest, interval * 1.25)
 
 
 def _tcp_port_free(port, host=""):
@@ -954,6 +988,7 @@ class _SpaceHost:
     robot_timeout = 30.0         # seconds for a robot to stop its items before we carry on
     launcher_nodes_timeout = 15.0  # seconds for a launcher's nodes to register after it was spawned
     registration_poll = 0.02       # seconds between two looks at the ROS master while items register
+    registration_poll_slowest = 0.2  # ... growing to at most this (dozens of spaces starting at once)
     _roslaunch_imported = False    # launcher_nodes ran once on the reactor thread (see _prepare)
 
     key_prefix = "ss"
@@ -969,6 +1004,7 @@ class _SpaceHost:
         self.run_as = run_as
         self._address = address
         self.spaces = {}
+        self.executables = NodeExecutables()   # nodes run as one exec, not through rosrun (rcmp_command)
         self.ros_log_dir = os.path.join(table.log_dir, "ros")
 
     @property
@@ -1031,7 +1067,8 @@ class _SpaceHost:
     @defer.inlineCallbacks
     def _master_ready(self, space):
         """Wait for the spawned ROS master to answer, give it ``/run_id`` as roscore does, start rosout, and
-        mark both running as soon as they prove it (the master answers, rosout registers)."""
+        mark both running as soon as they prove it (the master answers, rosout registers). The space's items
+        start after this fires (rospy nodes with private params need an answering master at once)."""
         yield self._wait_for_master(space)
         if space.cancelled:
             return
@@ -1040,7 +1077,8 @@ class _SpaceHost:
         yield self._call_master(space, "setParam", "/run_id", str(uuid.uuid1()), what="set /run_id")
         if space.cancelled:
             return
-        space.rosout = self.table.spawn(space.key("rosout"), ["rosrun", "rosout", "rosout"], space.core_env,
+        argv = self.executables.direct_argv(["rosrun", "rosout", "rosout"], space.core_env)
+        space.rosout = self.table.spawn(space.key("rosout"), argv, space.core_env,
                                         f"{space.name}-rosout", core=True, user=self.run_as)
         space.rosout.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
         space.master.listeners.append(lambda mp, old, new: self._core_changed(space, mp, new))
@@ -1091,7 +1129,8 @@ class _SpaceHost:
             if timeout is None and managed.state == RUNNING:
                 return missing
             return AGAIN
-        return poll_until(self.reactor, attempt, self.registration_poll, timeout, lambda exc: missing)
+        return poll_until(self.reactor, attempt, self.registration_poll, timeout, lambda exc: missing,
+                          slowest=self.registration_poll_slowest)
 
     def _wait_for_master(self, space):
         """Poll the new master's XML-RPC getPid until it answers (no sleeping in place of waiting)."""
@@ -1114,7 +1153,8 @@ class _SpaceHost:
         def give_up(exc):
             raise SpaceError(f"the ROS master on {space.ros_master_uri} did not answer within "
                              f"{self.master_timeout:g} s: {exc}")
-        return poll_until(self.reactor, attempt, 0.05, self.master_timeout, give_up)
+        return poll_until(self.reactor, attempt, 0.05, self.master_timeout, give_up,
+                          slowest=self.registration_poll_slowest)
 
     @defer.inlineCallbacks
     def _core_settled(self, space):
@@ -1211,6 +1251,8 @@ class _SpaceHost:
         except CommandError as exc:  # params that do not split (validation lets none through)
             item.fail(f"cannot split the params {item.params!r}: {exc}")
             return
+        if item.kind == "node":
+            argv = self.executables.direct_argv(argv, env)
         item.process = self.table.spawn(space.key(item.kind, item.name), argv, env, f"{space.name}-{item.name}",
                                         user=self.run_as)
         item.process.listeners.append(lambda mp, old, new: self._item_changed(space, item, new))
@@ -1492,10 +1534,12 @@ class ServiceSpaceManager(_SpaceHost):
             elif ss_side == "S":
                 space.address = self.address
                 self._spawn_master(space, base)
-                work = [self._master_ready(space), self._start_local_items(space, local)]
-                if remote:
-                    work.append(self._start_remote(space, robot, remote, None))
-                yield defer.gatherResults(work, consumeErrors=True)
+                yield self._master_ready(space)   # items start once it answers (module docstring)
+                if not space.cancelled:
+                    work = [self._start_local_items(space, local)]
+                    if remote:
+                        work.append(self._start_remote(space, robot, remote, None))
+                    yield defer.gatherResults(work, consumeErrors=True)
             else:
                 space.address = self.address
                 yield self._start_remote(space, robot, remote, base)
@@ -1702,19 +1746,13 @@ class RobotSideRunner(_SpaceHost):
         self.spaces[ss_name] = space
         try:
             space.address = self.address
-            work = []
             if start_ros_master_port:
                 self._spawn_master(space, int(start_ros_master_port))
-                work.append(self._master_ready(space))
+                yield self._master_ready(space)   # items start once it answers, as on the master
             if not space.ros_master_uri:
                 raise SpaceError("no ROS master URI given and none started")
-            work.append(self._start_local_items(space, parsed))
-            try:
-                yield defer.gatherResults(work, consumeErrors=True)
-            except defer.FirstError as exc:
-                if isinstance(exc.subFailure.value, SpaceError):
-                    raise exc.subFailure.value
-                raise
+            if not space.cancelled:
+                yield self._start_local_items(space, parsed)
             if not space.cancelled:
                 yield self._items_started(space)
             yield self._core_settled(space)

@@ -817,6 +817,13 @@ def main(argv=None):
     except StartupError as exc:
         _log_to_file_only(f"cannot start: {exc}")
         return _fail(str(exc), 2)
+    # after the imports (a fleet of agents starting at once on one machine should not import ahead of the
+    # agents already serving), before any thread (niceness is per thread)
+    from . import rcmp_ms
+    boost = rcmp_ms.raise_agent_priority()
+    if boost:
+        log.info("rcmp_n runs %d nice levels above the processes it starts (they keep nice %d)", boost,
+                 os.nice(0) + boost)
 
     def start():
         try:

@@ -87,6 +87,44 @@ def test_s_and_r_nodes_pair_and_share_the_service_space(platform):
     finish(platform)
 
 
+def _nice(pid):
+    with open(f"/proc/{pid}/stat") as f:
+        return int(f.read().rsplit(")", 1)[1].split()[16])   # field 19 of stat: nice
+
+
+def _logged_start(log_text, key):
+    """(timestamp text, argv text) of the agent's log line saying process ``key`` started."""
+    for line in log_text.splitlines():
+        if f"process {key} started:" in line:
+            return line[:23], line.split(", argv ", 1)[1]
+    raise AssertionError(f"no start of {key} in the log")
+
+
+def test_nodes_run_as_one_exec_once_the_master_answers_below_their_agents_priority(platform):
+    """Issue 10: a node is exec'd directly (rosrun's bash, catkin_find and rospack cost 0.2 CPU-s per node), only
+    once the space's ROS master answers (a rospy node given private params sets them on its master at once and
+    dies if none answers), and runs at the niceness its agent started with while a root agent runs 5 levels
+    above it (hellos and heartbeats go first when many nodes start at once)."""
+    platform.master.start()
+    robot = pair_two_sided_robot(platform)
+    master_log, robot_log = platform.master.log_text(), robot.log_text()
+    answered = next(line[:23] for line in master_log.splitlines() if "service space robot1: ROS master answers" in line)
+    for log_text, key in ((master_log, "ss/robot1/node/brain"), (robot_log, "robot/robot1/node/body"),
+                          (master_log, "ss/robot1/rosout")):
+        when, argv = _logged_start(log_text, key)
+        assert "rosrun" not in argv and argv.startswith("['/"), argv
+        assert when >= answered, (key, when, answered)
+    base = os.nice(0)
+    boost = 5 if os.geteuid() == 0 and base >= -15 else 0
+    for agent, topic in ((platform.master, "brain_chatter"), (robot, "body_chatter")):
+        assert _nice(agent.process.pid) == base - boost
+        node_pids = [pid for pid, cmd in platform.leftovers() if f"_topic:={topic}" in cmd]
+        assert len(node_pids) == 1 and _nice(node_pids[0]) == base
+    if boost:
+        assert "nice levels above the processes it starts" in master_log
+    finish(platform)
+
+
 def test_launcher_nodes_appear_in_associated_r_nodes(platform):
     platform.master.start()
     platform.provision_logic("with_launcher", sl_list=[launcher("pair_of_talkers", "R", "lt")])

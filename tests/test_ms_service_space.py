@@ -484,6 +484,42 @@ def test_item_argv_never_goes_through_a_shell():
     assert argv[-6:] == ["pkg", "x.launch", "prefix:=p;", "rm", "-rf", "/"]  # just words; nothing runs them
 
 
+def test_node_executables_find_what_rosrun_would_run():
+    found = rcmp_command.NodeExecutables()
+    env = dict(os.environ)
+    argv = found.direct_argv(["rosrun", "robotics_test", "talker.py", "_a:=1", "__name:=t"], env)
+    assert argv[0].endswith("/robotics_test/scripts/talker.py") and os.access(argv[0], os.X_OK)
+    assert argv[1:] == ["_a:=1", "__name:=t"]
+    # two matches (the script and its devel-space relay in the package's libexec): the relay, as rosrun picks
+    assert "/devel/lib/firos/core.py" in found.direct_argv(["rosrun", "firos", "core.py"], env)[0]
+    assert found.direct_argv(["rosrun", "rosout", "rosout"], env) == ["/usr/lib/rosout/rosout"]
+    # what rosrun must decide (and explain in the item's log) stays rosrun's
+    for argv in (["rosrun", "no_such_package", "x"], ["rosrun", "robotics_test", "no_such_node.py"],
+                 ["rosrun", "--prefix", "gdb", "robotics_test", "talker.py"], ["roslaunch", "a", "b"]):
+        assert found.direct_argv(argv, env) == argv
+    # a child whose package path is not the agent's would find other files: rosrun, in the child, decides
+    elsewhere = dict(env, ROS_PACKAGE_PATH="/elsewhere")
+    assert found.direct_argv(["rosrun", "robotics_test", "talker.py"], elsewhere)[0] == "rosrun"
+
+
+def test_node_executables_forget_a_file_that_is_no_longer_executable(tmp_path, monkeypatch):
+    package = tmp_path / "src" / "tmp_pkg"
+    (package / "scripts").mkdir(parents=True)
+    (package / "package.xml").write_text(
+        '<?xml version="1.0"?><package format="2"><name>tmp_pkg</name><version>0.0.1</version>'
+        '<description>x</description><maintainer email="a@example.org">a</maintainer><license>BSD</license>'
+        '<buildtool_depend>catkin</buildtool_depend></package>')
+    script = package / "scripts" / "n.py"
+    script.write_text("#!/usr/bin/python3\n")
+    script.chmod(0o755)
+    monkeypatch.setenv("ROS_PACKAGE_PATH", f"{tmp_path / 'src'}:{os.environ.get('ROS_PACKAGE_PATH', '')}")
+    found = rcmp_command.NodeExecutables()
+    assert found.find("tmp_pkg", "n.py") == str(script)
+    script.chmod(0o644)
+    assert found.find("tmp_pkg", "n.py") is None
+    assert found.direct_argv(["rosrun", "tmp_pkg", "n.py"], dict(os.environ)) == ["rosrun", "tmp_pkg", "n.py"]
+
+
 def test_child_env_points_at_the_space():
     env = rcmp_command.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
                              "ROS_NAMESPACE": "/x"}, "http://10.8.0.1:11312/", "10.8.0.1", "/h/log/ros")
