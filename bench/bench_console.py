@@ -26,7 +26,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-from bench.report import write_section  # noqa: E402
+from bench.report import percentile, write_section  # noqa: E402
 from tests.support.browser import Browser  # noqa: E402
 from tests.support.polling import wait_until  # noqa: E402
 from tests.support.ports import ros_port_base  # noqa: E402
@@ -75,12 +75,6 @@ def log_time(text, pattern):
     if not stamps:
         return None
     return datetime.datetime.strptime(stamps[-1], "%Y-%m-%d %H:%M:%S,%f").timestamp()
-
-
-def percentile(values, fraction):
-    ordered = sorted(values)
-    index = min(len(ordered) - 1, max(0, round(fraction * (len(ordered) - 1))))
-    return ordered[index]
 
 
 class StreamClock:

@@ -31,7 +31,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
 
-from bench.report import write_section  # noqa: E402
+from bench.report import percentile, write_section  # noqa: E402
 from tests.ngsi_broker.testing import start_broker  # noqa: E402
 from tests.support.firos import Firos, write_config  # noqa: E402
 from tests.support.polling import wait_until  # noqa: E402
@@ -44,12 +44,6 @@ LD_LINK = ('<https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld>; '
            'rel="http://www.w3.org/ns/json-ld#context"; type="application/ld+json"')
 TOPICS = [f"t{i}" for i in range(10)]
 RATES = [250, 500, 1000, 2000, 4000]
-
-
-def percentile(values, q):
-    ordered = sorted(values)
-    index = min(len(ordered) - 1, max(0, int(round(q / 100.0 * (len(ordered) - 1)))))
-    return ordered[index]
 
 
 class Broker:
@@ -292,8 +286,8 @@ def main(argv=None):
         cells, verdicts = [], []
         for version, label in VERSIONS:
             values = results[version][key]
-            p50 = percentile(values, 50)
-            cells.append(f"{p50:.2f} ms | {percentile(values, 99):.2f} ms | {statistics.mean(values):.2f} ms")
+            p50 = percentile(values, 0.5)
+            cells.append(f"{p50:.2f} ms | {percentile(values, 0.99):.2f} ms | {statistics.mean(values):.2f} ms")
             verdicts.append(f"{label} {met(p50, lambda v: v < 10)}")
         lines.append(f"| {what} | " + " | ".join(cells) + " | " + ", ".join(verdicts) + " |")
     lines += ["", "One robot, ten topics (std_msgs/Int32), distinct values round-robin, %.0f s per rate:" % seconds,

@@ -35,7 +35,7 @@ if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
 from bench.bench_rdapi import median_run, post, run_wrk  # noqa: E402
-from bench.report import write_section  # noqa: E402
+from bench.report import percentile, write_section  # noqa: E402
 from tests.support.processes import ProcessGroup  # noqa: E402
 from tests.support.rcmp_agent import RcmpAgent  # noqa: E402
 
@@ -139,11 +139,6 @@ def fresh_connection_latencies(host, port, count):
     return out
 
 
-def percentile(values, pct):
-    values = sorted(values)
-    return values[min(len(values) - 1, max(0, math.ceil(pct / 100 * len(values)) - 1))]
-
-
 def addresses(prefix_octet, count):
     return [f"127.{prefix_octet}.{i // 250}.{i % 250 + 1}" for i in range(count)]
 
@@ -182,8 +177,8 @@ def main(argv=None):
             wrk = median_run([run_wrk(url, WRK_CONNECTIONS, 1, args.duration) for _ in range(args.repeat)])
             fresh = fresh_connection_latencies(master.host, master.ext_port, args.fresh)
             ok = [v for v in fresh if v is not None]
-            results[phase] = dict(wrk, fresh_p50=percentile(ok, 50) if ok else float("nan"),
-                                  fresh_p99=percentile(ok, 99) if ok else float("nan"),
+            results[phase] = dict(wrk, fresh_p50=percentile(ok, 0.5) if ok else float("nan"),
+                                  fresh_p99=percentile(ok, 0.99) if ok else float("nan"),
                                   fresh_failed=len(fresh) - len(ok))
 
         measure("quiet")

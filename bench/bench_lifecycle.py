@@ -21,7 +21,6 @@ Results go to docs/PERFORMANCE.md (section ``lifecycle``); ``main`` returns 1 wh
 
 import argparse
 import contextlib
-import math
 import os
 import statistics
 import sys
@@ -34,7 +33,7 @@ if ROOT not in sys.path:
 
 import rosgraph  # noqa: E402
 
-from bench.report import write_section  # noqa: E402
+from bench.report import load_average, percentile, write_section  # noqa: E402
 from rcm_platform.rcmp_ms import OsFacade  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
 from tests.support.polling import WaitTimeout, wait_until  # noqa: E402
@@ -217,20 +216,6 @@ def many_robots(plat, count):
 
 
 # -- herd: N robots at once ------------------------------------------------------------------------------------
-
-def percentile(values, fraction):
-    """The nearest-rank percentile of ``values`` (``fraction`` 0.5 for p50, 0.99 for p99)."""
-    ordered = sorted(values)
-    return ordered[max(0, math.ceil(fraction * len(ordered)) - 1)]
-
-
-def load_average():
-    try:
-        with open("/proc/loadavg") as f:
-            return " / ".join(f.read().split()[:2])
-    except OSError:
-        return "?"
-
 
 def cpu_seconds(pids):
     """User plus system CPU seconds the live processes ``pids`` and their reaped children used so far (from
@@ -431,9 +416,10 @@ def main(argv=None):
     part_a = f"""
 Real agents on loopback (master 127.0.0.1, robots 127.0.0.2 ...), heartbeats every {args.heartbeat:g} s (3 misses),
 service logic: one S-side and one R-side `robotics_test/talker.py`. Service spaces run `rosmaster --core` plus
-`rosout` (rcmp_ms); the space's ROS master and its items are spawned together, and an item counts as started as
-soon as its node registers with the space's master (the settle time is only the fallback for nodes that never
-register), so pairing waits for registrations, not for a fixed delay.
+`rosout` (rcmp_ms); the space's items start once its ROS master answers (as roslaunch does), each node as one
+exec of the file `rosrun` would run, and an item counts as started as soon as its node registers with the space's
+master (the settle time is only the fallback for nodes that never register), so pairing waits for
+registrations, not for a fixed delay.
 
 ### (a) Robot agent start to `paired: true` ({args.runs} runs)
 
@@ -446,12 +432,12 @@ register), so pairing waits for registrations, not for a fixed delay.
 
 Ratio to the floor: **{ratio:.2f}x** (target ≤ {TARGET_RATIO}x): {"met" if ok_a else "NOT met"}; single runs ranged
 {min(pair_times) / floor:.2f}x to {max(pair_times) / floor:.2f}x, so read a ratio near the target as borderline.
-Where the time goes (agents' logs, one run): the robot agent's own start until hello, about 0.23 s (Python,
-Twisted and rcm_platform imports); hello, 5 ms; then the space's `rosmaster`, the S node, the R node and `rosout`
-start at once and the last node registers 0.4-0.6 s later. The floor measures one process at a time on an idle
-machine; here three Python processes (the master and two rospy nodes) start together on this 2-core machine,
-so each takes longer than in the floor. Before the change to registration-based starts, this figure was 1.41 s
-(2.7x), dominated by a fixed 1 s settle time.
+Where the time goes (agents' logs): the robot agent's own start until hello, 0.2-0.3 s (Python, Twisted and
+rcm_platform imports); hello, a few ms; the space's `rosmaster` until it answers; then the S node, the R node
+and `rosout` start at once and the last node registers. The floor's node is started with `rosrun`, as a user
+would type it (its bash, `catkin_find` and `rospack` add about 0.2 CPU-s); the platform's nodes are not
+(issue 10). Before the change to registration-based starts, this figure was 1.41 s (2.7x), dominated by a
+fixed 1 s settle time; before nodes ran without rosrun, 0.85 s (1.58x).
 """
     if isinstance(many, BenchFailure):
         ok_b = False

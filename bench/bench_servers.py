@@ -29,8 +29,8 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-from bench.bench_lifecycle import LOGIC, load_average, percentile  # noqa: E402
-from bench.report import write_section  # noqa: E402
+from bench.bench_lifecycle import LOGIC  # noqa: E402
+from bench.report import load_average, percentile, write_section  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
 from tests.support.polling import WaitTimeout, wait_until  # noqa: E402
 from tests.support.ports import ros_port_base  # noqa: E402

@@ -1,10 +1,12 @@
 """Writing benchmark results into docs/PERFORMANCE.md, one section per benchmark, machine and date included.
 
 Each benchmark calls ``write_section(name, title, markdown_body)``; the section is delimited by HTML comments
-so that re-running one benchmark replaces only its own section and leaves the others as they were.
+so that re-running one benchmark replaces only its own section and leaves the others as they were. Also the
+figures every benchmark reports the same way: ``percentile`` (nearest rank) and ``load_average``.
 """
 
 import datetime
+import math
 import os
 import platform
 import re
@@ -13,6 +15,21 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PERFORMANCE_MD = os.path.join(ROOT, "docs", "PERFORMANCE.md")
 HEADER = ("# Performance\n\nWritten by the benchmarks in `bench/` (`make bench` runs them all). Each section says "
           "the machine and the date it was measured on; targets come from the issues.\n")
+
+
+def percentile(values, fraction):
+    """The nearest-rank percentile of ``values`` (``fraction`` 0.5 for p50, 0.99 for p99): a value measured."""
+    ordered = sorted(values)
+    return ordered[max(0, math.ceil(fraction * len(ordered)) - 1)]
+
+
+def load_average():
+    """The 1- and 5-minute load averages as "A / B" ("?" when /proc/loadavg cannot be read)."""
+    try:
+        with open("/proc/loadavg") as f:
+            return " / ".join(f.read().split()[:2])
+    except OSError:
+        return "?"
 
 
 def machine_description():

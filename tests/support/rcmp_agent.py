@@ -24,7 +24,22 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 PYTHON = "/usr/bin/python3"
 
 
-class RcmpAgent:
+class AgentLog:
+    """The agent's own log, ``HOME/log/rcmp.log``, for any helper with a ``home``."""
+
+    @property
+    def log_path(self):
+        return os.path.join(self.home, "log", "rcmp.log")
+
+    def log_text(self):
+        try:
+            with open(self.log_path, encoding="utf-8", errors="replace") as f:
+                return f.read()
+        except OSError:
+            return ""
+
+
+class RcmpAgent(AgentLog):
     """One agent owned by a test. ``start()`` returns self; ``stop()``, ``kill()``, ``restart()``."""
 
     def __init__(self, procs, home, role="master", env=None, args=(), **keys):
@@ -76,16 +91,6 @@ class RcmpAgent:
     def db_path(self):
         return os.path.join(self.home, "robotics_data.db")
 
-    @property
-    def log_path(self):
-        return os.path.join(self.home, "log", "rcmp.log")
-
-    def log_text(self):
-        try:
-            with open(self.log_path, encoding="utf-8", errors="replace") as f:
-                return f.read()
-        except OSError:
-            return ""
 
     def wait_log(self, text, timeout=20.0):
         """Wait until ``text`` appears in rcmp.log (anywhere, this run or a previous one) and return the log."""

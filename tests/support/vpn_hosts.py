@@ -21,6 +21,7 @@ import subprocess
 
 from .hosts import VPN_SUBNET
 from .polling import wait_until
+from .rcmp_agent import AgentLog
 from .processes import ros_env
 
 REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -29,7 +30,7 @@ HEARTBEAT = 0.5
 MISSES = 3
 
 
-class Agent:
+class Agent(AgentLog):
     """One agent in its host: ``start()``, ``stop()`` (SIGTERM, checked gone), its log."""
 
     def __init__(self, platform, host, home, role):
@@ -38,17 +39,6 @@ class Agent:
         self.home = home
         self.role = role
         self.process = None
-
-    @property
-    def log_path(self):
-        return os.path.join(self.home, "log", "rcmp.log")
-
-    def log_text(self):
-        try:
-            with open(self.log_path, encoding="utf-8", errors="replace") as f:
-                return f.read()
-        except OSError:
-            return ""
 
     def start(self):
         env = ros_env({"ROS_LOG_DIR": os.path.join(self.home, "roslog")})
