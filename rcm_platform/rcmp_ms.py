@@ -104,6 +104,7 @@ _ALLOWED_SOURCES = {
 SETSID = "/usr/bin/setsid"
 SETPRIV = "/usr/bin/setpriv"
 NICE = "/usr/bin/nice"
+DESCENDANTS_MAX_AGE = 0.2  # seconds a /proc scan may serve a child that has just started (OsFacade.descendants)
 AGENT_PRIORITY_BOOST = 5   # an agent runs this many nice levels above the processes it starts (when it may)
 _children_nice = 0         # what children add to the agent's niceness to get back to where it started
 
@@ -250,6 +251,7 @@ class OsFacade:
     def __init__(self, reactor):
         self.reactor = reactor
         self._devnull = None
+        self._scanned = None   # (monotonic time, the /proc table then): see descendants
 
     def spawn(self, process_protocol, argv, env, cwd=None, user=None):
         """Start ``argv`` in a new session (setsid) with SIGTERM on agent death, as ``user`` (a ``RunAs``) when
@@ -309,9 +311,16 @@ class OsFacade:
         info = _proc_stat(pid)
         return info is not None and info[2] == pid
 
-    def descendants(self, pid):
-        """{pid: start_time} of every living descendant of ``pid`` (children, grandchildren, ...)."""
-        table = _proc_table()
+    def descendants(self, pid, max_age=0.0):
+        """{pid: start_time} of every living descendant of ``pid`` (children, grandchildren, ...). With
+        ``max_age``, a scan of /proc up to that many seconds old may serve (a scan reads every process's stat:
+        about 5 ms with 400 processes, and dozens of spaces starting at once ask for it many times a second)."""
+        now = time.monotonic()
+        if max_age and self._scanned is not None and now - self._scanned[0] <= max_age:
+            table = self._scanned[1]
+        else:
+            table = _proc_table()
+            self._scanned = (now, table)
         children = collections.defaultdict(list)
         for child, info in table.items():
             children[info[1]].append(child)
@@ -493,15 +502,16 @@ class ManagedProcess:
         log.info("process %s started: pid %s, argv %s, log %s", self.key, self.pid, self.argv, self.log_path)
         self._settle_call = table.reactor.callLater(table.settle_time, self._settled)
 
-    def remember_descendants(self):
+    def remember_descendants(self, max_age=0.0):
         """Note the child's current descendants, so that they are stopped with it even if it dies first
-        (roslaunch's nodes live in sessions of their own and outlive a crashed roslaunch otherwise)."""
+        (roslaunch's nodes live in sessions of their own and outlive a crashed roslaunch otherwise). When it
+        starts, a look at /proc up to ``max_age`` seconds old will do; a stop always looks afresh."""
         if self.pid is not None and not self._reaped_yet:
-            self._descendants.update(self.table.os.descendants(self.pid))
+            self._descendants.update(self.table.os.descendants(self.pid, max_age=max_age))
 
     def _settled(self):
         self._settle_call = None
-        self.remember_descendants()
+        self.remember_descendants(max_age=DESCENDANTS_MAX_AGE)
         if self.state == STARTING:
             self._transition(RUNNING, f"up for {self.table.settle_time:g} s")
 
@@ -513,7 +523,7 @@ class ManagedProcess:
         if self._settle_call is not None and self._settle_call.active():
             self._settle_call.cancel()
         self._settle_call = None
-        self.remember_descendants()
+        self.remember_descendants(max_age=DESCENDANTS_MAX_AGE)
         self._transition(RUNNING, why)
 
     def when_settled(self):
@@ -1124,7 +1134,7 @@ class _SpaceHost:
             missing = still
             if not missing:
                 managed.confirm_running("registered with the ROS master")
-                managed.remember_descendants()  # its nodes now exist: they go wherever it goes
+                managed.remember_descendants()  # afresh: its nodes now exist, they go wherever it goes
                 return []
             if timeout is None and managed.state == RUNNING:
                 return missing

@@ -4,6 +4,7 @@ real children (setsid, process groups, escalation, logs) under a running Twisted
 import os
 import shutil
 import signal
+import subprocess
 import sys
 import tempfile
 
@@ -58,7 +59,7 @@ class RecordingOs:
     def is_group_leader(self, pid):
         return True
 
-    def descendants(self, pid):
+    def descendants(self, pid, max_age=0.0):
         return dict(self.children.get(pid, {}))
 
     # test helpers
@@ -467,6 +468,18 @@ class RealProcessTests(unittest.TestCase):
         self.pgids.extend(grandchildren)
         yield self.wait_for(lambda: mp.state == FAILED)
         yield self.wait_for(lambda: not any(group_alive(pid) for pid in grandchildren))
+
+    def test_a_recent_proc_scan_may_serve_but_a_plain_look_is_fresh(self):
+        facade = rcmp_ms.OsFacade(reactor)
+        facade.descendants(os.getpid(), max_age=60)             # scans /proc, remembered
+        child = subprocess.Popen(["/bin/sleep", "30"])
+        try:
+            self.assertNotIn(child.pid, facade.descendants(os.getpid(), max_age=60))   # the old scan served
+            self.assertIn(child.pid, facade.descendants(os.getpid()))                  # afresh
+            self.assertIn(child.pid, facade.descendants(os.getpid(), max_age=60))      # and remembered anew
+        finally:
+            child.kill()
+            child.wait()
 
     def test_missing_executable_fails_with_the_reason(self):
         mp = self.table.spawn("ghost", ["/nonexistent/ghost-binary"], dict(os.environ), "ghost")
