@@ -8,8 +8,9 @@ This module owns every child process an agent starts and the service spaces buil
   ``running`` once its owner has proof that it started (``confirm_running``: a ROS node registered with its
   master, a master answered) or, failing that, after staying up ``settle_time`` seconds; only the reaping
   path (``processExited``) marks a child ``exited`` (we stopped it) or ``failed`` (it ended unasked).
-* Children never run through a shell. Each runs in its own session and process group: Twisted's
-  ``spawnProcess`` has no ``setsid``, so argv is prefixed with ``/usr/bin/setsid`` (util-linux; the forked
+* Children never run through a shell, and the agent is never forked to start them: Twisted's process transport
+  starts them with ``posix_spawn`` (``_SpawnedProcess``). Each runs in its own session and process group:
+  argv is prefixed with ``/usr/bin/setsid`` (util-linux; the spawned
   child is not a group leader, so setsid calls setsid(2) and execs in place: same pid, and that pid is the
   process group id) and ``/usr/bin/setpriv --pdeathsig TERM`` (the child gets SIGTERM if the agent dies,
   even by SIGKILL, so a killed agent leaves nothing running). Both exec directly. An agent started as root
@@ -58,6 +59,7 @@ builds the runtime and hands it (and the function giving the platform address) t
 
 import collections
 import dataclasses
+import fcntl
 import json
 import logging
 import os
@@ -70,7 +72,7 @@ import uuid
 from typing import Protocol
 
 from twisted.application import service
-from twisted.internet import defer, protocol, task, threads
+from twisted.internet import defer, process, protocol, task, threads
 from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
@@ -102,6 +104,7 @@ _ALLOWED_SOURCES = {
 }
 
 SETSID = "/usr/bin/setsid"
+ENV = "/usr/bin/env"
 SETPRIV = "/usr/bin/setpriv"
 NICE = "/usr/bin/nice"
 DESCENDANTS_MAX_AGE = 0.2  # seconds a /proc scan may serve a child that has just started (OsFacade.descendants)
@@ -263,8 +266,10 @@ class OsFacade:
         if user is not None and cwd is None:
             cwd = user.home
         full = [SETSID, *nice_prefix(), SETPRIV, *switch, "--pdeathsig", "TERM", "--"] + list(argv)
-        transport = self.reactor.spawnProcess(process_protocol, full[0], full, env=env, path=cwd,
-                                              childFDs={0: self._devnull, 1: "r", 2: "r"})
+        if cwd is not None:   # posix_spawn cannot change directory: coreutils' env does, then execs
+            full = [ENV, "-C", cwd, *full]
+        transport = _SpawnedProcess(self.reactor, full[0], full, env, None, process_protocol, None, None,
+                                    {0: self._devnull, 1: "r", 2: "r"})
         return transport.pid
 
     def signal_group(self, pgid, sig):
@@ -331,6 +336,42 @@ class OsFacade:
                     found[child] = table[child][3]
                     pending.append(child)
         return found
+
+
+class _SpawnedProcess(process.Process):
+    """Twisted's process transport, the child started with ``os.posix_spawn`` (vfork and exec, in C) instead of
+    ``os.fork``. Forking the agent's Python process held its event loop 70-100 ms per child on a busy machine for
+    3 ms of CPU (the fork, then copy-on-write faults until the child execs; docs/PERFORMANCE.md): with a fleet
+    arriving, hellos waited behind it. The child is set up as Twisted sets it up: fds 0-2 from ``childFDs``,
+    every other descriptor closed (ours are close-on-exec; any that is not gets a close action), signals the
+    agent ignores back to their defaults. Anything it cannot do so (a change of user, a relative executable, a
+    source descriptor among 0-2) goes through Twisted's own fork."""
+
+    def _fork(self, path, uid, gid, executable, args, environment, **kwargs):
+        fdmap = kwargs["fdmap"]
+        if (uid is not None or gid is not None or path is not None or not os.path.isabs(executable)
+                or any(parent < 3 and parent != child for child, parent in fdmap.items())):
+            return super()._fork(path, uid, gid, executable, args, environment, **kwargs)
+        actions = [(os.POSIX_SPAWN_DUP2, parent, child) for child, parent in sorted(fdmap.items())]
+        for fd in _inheritable_fds():
+            if fd not in fdmap:
+                actions.append((os.POSIX_SPAWN_CLOSE, fd))
+        ignored = {n for n in signal.valid_signals()
+                   if n not in (signal.SIGKILL, signal.SIGSTOP) and signal.getsignal(n) == signal.SIG_IGN}
+        self.pid = os.posix_spawn(executable, args, environment, file_actions=actions, setsigdef=ignored)
+
+
+def _inheritable_fds():
+    """This process's open descriptors that an exec would pass on (close-on-exec not set)."""
+    found = []
+    for entry in os.listdir("/proc/self/fd"):
+        fd = int(entry)
+        try:
+            if not fcntl.fcntl(fd, fcntl.F_GETFD) & fcntl.FD_CLOEXEC:
+                found.append(fd)
+        except OSError:      # the listing's own descriptor, closed by now
+            continue
+    return found
 
 
 def _parse_stat(text):

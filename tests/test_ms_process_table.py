@@ -469,6 +469,33 @@ class RealProcessTests(unittest.TestCase):
         yield self.wait_for(lambda: mp.state == FAILED)
         yield self.wait_for(lambda: not any(group_alive(pid) for pid in grandchildren))
 
+    @defer.inlineCallbacks
+    def test_a_child_is_spawned_without_a_fork_and_gets_only_its_own_descriptors(self):
+        """Children start through posix_spawn (the agent is never forked): stdin is /dev/null, stdout and stderr
+        the log pipes, nothing else of the agent's (even a descriptor left inheritable), signals the agent
+        ignores back to their defaults, and its own session."""
+        leak_r, leak_w = os.pipe()
+        os.set_inheritable(leak_w, True)
+        self.addCleanup(os.close, leak_r)
+        self.addCleanup(os.close, leak_w)
+        code = ("import os, sys; print('fds', sorted(int(f) for f in os.listdir('/proc/self/fd'))); "
+                "print('stdin', os.readlink('/proc/self/fd/0')); "
+                "print('session', os.getsid(0) == os.getpid(), flush=True); sys.stderr.write('to the log\\n')")
+        mp = self.spawn("fds", code)
+        yield self.wait_for(lambda: mp.state in (FAILED, EXITED) or "session" in mp.tail())
+        out = mp.tail(10)
+        self.assertIn("fds [0, 1, 2, 3]", out)       # 3: the listing's own descriptor
+        self.assertIn("stdin /dev/null", out)
+        self.assertIn("session True", out)
+        yield self.wait_for(lambda: "to the log" in mp.tail())
+        # Python ignores SIGPIPE and SIGXFSZ; a child (cat, which leaves its signals alone) ignores nothing
+        cat = self.table.spawn("signals", ["/bin/cat", "/proc/self/status"], dict(os.environ), "signals")
+        self.pgids.append(cat.pid)
+        yield self.wait_for(lambda: "SigIgn" in cat.tail(80))
+        ignored = int(next(l for l in cat.tail(80).splitlines() if l.startswith("SigIgn:")).split()[1], 16)
+        for sig in (signal.SIGPIPE, signal.SIGXFSZ):
+            self.assertFalse(ignored & (1 << (sig - 1)), f"{sig!r} still ignored in the child")
+
     def test_a_recent_proc_scan_may_serve_but_a_plain_look_is_fresh(self):
         facade = rcmp_ms.OsFacade(reactor)
         facade.descendants(os.getpid(), max_age=60)             # scans /proc, remembered
