@@ -351,9 +351,13 @@ class NodeExecutables:
     PATH_KEYS = ("ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH")
 
     def __init__(self, ttl=60.0, clock=time.monotonic):
-        import catkin.find_in_workspaces  # noqa: F401  (see the docstring)
-        import roslib.packages  # noqa: F401
-        import rospkg  # noqa: F401
+        try:   # python3-roslib (which brings rospkg and catkin) comes with rospy; without it, rosrun decides
+            import catkin.find_in_workspaces  # noqa: F401  (see the docstring)
+            import roslib.packages  # noqa: F401
+            import rospkg  # noqa: F401
+            self.available = True
+        except ImportError:
+            self.available = False
         self.ttl = ttl
         self.clock = clock
         self._rospack = None
@@ -362,7 +366,7 @@ class NodeExecutables:
 
     def direct_argv(self, argv, env):
         """``argv`` with ``rosrun PKG TYPE`` replaced by the executable it would run, when that is certain."""
-        if len(argv) < 3 or argv[0] != "rosrun" or argv[1].startswith("-"):
+        if not self.available or len(argv) < 3 or argv[0] != "rosrun" or argv[1].startswith("-"):
             return list(argv)
         if any(env.get(key, "") != os.environ.get(key, "") for key in self.PATH_KEYS):
             return list(argv)
