@@ -28,7 +28,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 if ROOT not in sys.path:
     sys.path.insert(0, ROOT)
 
-from bench.bench_lifecycle import LOGIC  # noqa: E402
+from bench.bench_lifecycle import LOGIC, time_to_pair  # noqa: E402
 from bench.report import load_average, write_section  # noqa: E402
 from tests.support.hosts import Lan  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
@@ -92,19 +92,9 @@ def loopback_pairing(tmp, runs):
     plat = Platform(procs, os.path.join(tmp, "loopback"), heartbeat=2.0)
     try:
         plat.master.start()
-        plat.provision_logic("bench_pair", sn_list=LOGIC)
-        plat.provision_robot("benchbot", "bench_pair")
-        robot = plat.robot("benchbot", "127.0.0.2")
-        times = []
-        for _ in range(runs):
-            started = time.time()
-            robot.start(wait=False)
-            t_paired = wait_until(lambda: _stamp_of(plat.master.log_text(), "robot benchbot paired", started),
-                                  timeout=60, interval=POLL, message="benchbot paired on loopback")
-            times.append(t_paired - started)
-            robot.stop()
-            plat.wait_state("benchbot", False, False)
-        return times
+        return time_to_pair(plat, runs, paired_at=lambda started: wait_until(
+            lambda: _stamp_of(plat.master.log_text(), "robot benchbot paired", started),
+            timeout=60, interval=POLL, message="benchbot paired on loopback"))
     finally:
         try:
             procs.stop_all()

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from rcm_platform.rcmp_ms import AGENT_PRIORITY_BOOST
 from tests.support.lifecycle import Platform
 from tests.support.polling import wait_until
 
@@ -103,8 +104,8 @@ def _logged_start(log_text, key):
 def test_nodes_run_as_one_exec_once_the_master_answers_below_their_agents_priority(platform):
     """Issue 10: a node is exec'd directly (rosrun's bash, catkin_find and rospack cost 0.2 CPU-s per node), only
     once the space's ROS master answers (a rospy node given private params sets them on its master at once and
-    dies if none answers), and runs at the niceness its agent started with while a root agent runs 5 levels
-    above it (hellos and heartbeats go first when many nodes start at once)."""
+    dies if none answers), and runs at the niceness its agent started with while a root agent runs
+    AGENT_PRIORITY_BOOST levels above it (hellos and heartbeats go first when many nodes start at once)."""
     platform.master.start()
     robot = pair_two_sided_robot(platform)
     master_log, robot_log = platform.master.log_text(), robot.log_text()
@@ -115,7 +116,7 @@ def test_nodes_run_as_one_exec_once_the_master_answers_below_their_agents_priori
         assert "rosrun" not in argv and argv.startswith("['/"), argv
         assert when >= answered, (key, when, answered)
     base = os.nice(0)
-    boost = 5 if os.geteuid() == 0 and base >= -15 else 0
+    boost = AGENT_PRIORITY_BOOST if os.geteuid() == 0 and base - AGENT_PRIORITY_BOOST >= -20 else 0
     for agent, topic in ((platform.master, "brain_chatter"), (robot, "body_chatter")):
         assert _nice(agent.process.pid) == base - boost
         node_pids = [pid for pid, cmd in platform.leftovers() if f"_topic:={topic}" in cmd]
