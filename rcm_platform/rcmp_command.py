@@ -26,12 +26,12 @@ import time
 
 from twisted.internet import defer
 
-MAX_NAME_LENGTH = 64
+from .rcmp_config import MAX_NAME_LENGTH, is_name
+
 MAX_FIELD_LENGTH = 255
 MAX_PARAMS_LENGTH = 4096
 MAX_ITEMS = 256
 
-NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
 PACKAGE_RE = re.compile(r"[A-Za-z][A-Za-z0-9_-]*\Z")
 FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*\Z")
 SIDES = ("S", "R")
@@ -109,7 +109,7 @@ def validate_name(value, field):
         raise BadRequest(f"'{field}' must not be empty")
     if len(value) > MAX_NAME_LENGTH:
         raise BadRequest(f"'{field}' is longer than {MAX_NAME_LENGTH} characters")
-    if not NAME_RE.match(value):
+    if not is_name(value):
         raise BadRequest(f"'{field}' {_show(value)} is not a valid name: use a letter, then letters, digits "
                          f"and underscores (no slashes, spaces or other characters)")
     return value

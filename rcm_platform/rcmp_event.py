@@ -24,6 +24,7 @@ from twisted.python import failure
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
+from rcm_platform.rcmp_config import master_address_from
 from rcm_platform.rcmp_service_command import describe, describe_waiting
 
 log = logging.getLogger("rcmp.event")
@@ -124,18 +125,12 @@ class _OrderedWrites:
         return done
 
 
-def master_address_from(own_address):
-    """The master's address when ``ip_master`` is not set: the agent's own with the last octet 1."""
-    parts = own_address.split(".")
-    return ".".join(parts[:3] + ["1"])
-
-
 def _address_function(config, address):
     """``address`` (a function giving the agent's platform address now, or None while there is none), or
     one giving ``config.vpn_address``."""
     if address is not None:
         return address
-    return lambda: getattr(config, "vpn_address", None)
+    return lambda: config.vpn_address
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -219,8 +214,7 @@ class MasterAgent(service.Service):
         self.servers = {}            # server VM name -> its session (robot false): it hosts service spaces
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
         self._write = _OrderedWrites()
-        self.max_starting_spaces = (getattr(config, "max_starting_spaces", None)
-                                    or default_max_starting_spaces())
+        self.max_starting_spaces = config.max_starting_spaces or default_max_starting_spaces()
         self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
         self._starting = {}          # robot name -> session whose space is being built now
         self.counters = collections.Counter()        # sessions opened / ended, hellos refused by code, ...
@@ -300,9 +294,8 @@ class MasterAgent(service.Service):
 
     def _listen(self):
         self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self,
-                                   max_connections=getattr(self.config, "ic_max_connections", None),
-                                   max_per_address=getattr(self.config, "ic_max_per_address", None)
-                                   or ic.MAX_PER_ADDRESS)
+                                   max_connections=self.config.ic_max_connections,
+                                   max_per_address=self.config.ic_max_per_address)
         log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
 
     @defer.inlineCallbacks
@@ -754,7 +747,7 @@ class RobotAgent(service.Service):
             hello = {"name": self.config.name, "address": self.address, "robot": self.config.role == "robot",
                      "version": VERSION}
             if self.config.role == "server":
-                hello["max_service_spaces"] = getattr(self.config, "max_service_spaces", MAX_SERVICE_SPACES)
+                hello["max_service_spaces"] = self.config.max_service_spaces
             answer = yield peer.request("hello", hello, timeout=HELLO_TIMEOUT)
         except ic.RemoteError as exc:
             self._problem("master %s refused hello: %s", master, exc.reason)

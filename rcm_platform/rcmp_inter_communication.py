@@ -345,10 +345,10 @@ class ListeningFactory(PeerFactory):
     LOG_EVERY = 10.0
     WARNINGS_PER_PERIOD = 10
 
-    def __init__(self, handler, reactor, max_connections=None, max_per_address=MAX_PER_ADDRESS):
+    def __init__(self, handler, reactor, max_connections=None, max_per_address=None):
         super().__init__(handler, reactor)
         self.max_connections = max_connections or default_max_connections()
-        self.max_per_address = max_per_address
+        self.max_per_address = max_per_address or MAX_PER_ADDRESS
         self.peers = set()
         self.per_address = {}        # source address -> connections open
         self.refused = 0             # connections refused since the last log line
@@ -407,8 +407,9 @@ class ListeningFactory(PeerFactory):
             self._logged_at = now
 
 
-def listen(reactor, address, port, handler, max_connections=None, max_per_address=MAX_PER_ADDRESS):
-    """Listen on ``address:port`` now; returns the listening port (``stopListening()`` to stop).
+def listen(reactor, address, port, handler, max_connections=None, max_per_address=None):
+    """Listen on ``address:port`` now; returns the listening port (``stopListening()`` to stop). The caps
+    default (None) to ``default_max_connections()`` and ``MAX_PER_ADDRESS``.
 
     ``port.factory`` is the ``ListeningFactory`` (its caps and counters). Raises
     ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.

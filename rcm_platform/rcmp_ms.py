@@ -1062,9 +1062,9 @@ class _SpaceHost:
     def address(self):
         """The platform address children advertise (ROS_IP) now; SpaceError when there is none yet."""
         address = self._address() if callable(self._address) else self._address
-        address = address or getattr(self.config, "vpn_address", None)
+        address = address or self.config.vpn_address
         if not address:
-            raise SpaceError(f"no platform address: interface {getattr(self.config, 'vpn_interface', '?')} has "
+            raise SpaceError(f"no platform address: interface {self.config.vpn_interface} has "
                              "no IPv4 address and vpn_address is not set")
         return address
 
@@ -1087,14 +1087,14 @@ class _SpaceHost:
         Never a port-0 (ephemeral) port: any process's outgoing or port-0 socket can take one of those between
         our check and the driver's bind, and the agent would then say r_connection to a stranger."""
         taken = {i.driver_port for s in self.spaces.values() for i in s.items if i.driver_port}
-        taken.add(getattr(self.config, "ic_port", None))
+        taken.add(self.config.ic_port)
         for port in range(RCM_DRIVER_PORT, RCM_DRIVER_PORT + 1000):
             if port not in taken and _tcp_port_free(port):
                 return port
         raise SpaceError(f"no free local port for rcm_driver between {RCM_DRIVER_PORT} and {RCM_DRIVER_PORT + 999}")
 
     def _take_inbound_port(self, space):
-        ports = list(getattr(self.config, "inbound_open_ports", None) or [])
+        ports = list(self.config.inbound_open_ports)
         users = {s.inbound_port: s.name for s in self.spaces.values() if s.inbound_port}
         for port in ports:
             if port not in users and _tcp_port_free(port):
@@ -1438,9 +1438,9 @@ class ServiceSpaceManager(_SpaceHost):
         self.on_state = on_state
         self.observers = []   # fn(ss_name) whenever a space appears, changes what describe() says, or goes;
                               # fn(None) when a server joins or goes (the console)
-        self.i_name = "master" if getattr(config, "role", "master") == "master" else config.name
-        self.name = getattr(config, "name", "master")
-        self.servers = {self.name: Server(self.name, getattr(config, "max_service_spaces", 100), public_ip)}
+        self.i_name = "master" if config.role == "master" else config.name
+        self.name = config.name
+        self.servers = {self.name: Server(self.name, config.max_service_spaces, public_ip)}
         self.unplaced = collections.OrderedDict()   # pi_name -> (service logic, robot): waiting for room
         self.gone = collections.OrderedDict()       # server VMs lost or left: name -> Server (the last GONE_KEPT)
         self._placing = None
@@ -1575,7 +1575,7 @@ class ServiceSpaceManager(_SpaceHost):
         log.info("service space %s: creating on %s (%d S items, %d R items, ROS master on the %s side)", pi_name,
                  server.name, len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
         try:
-            base = int(getattr(self.config, "ros_port_base", 11311))
+            base = self.config.ros_port_base
             local = [i for i in items if i.side == "S"]
             if ss_side == "S" and space.host is not None:
                 # the server starts the ROS master (from its own ros_port_base) and the S items; then the robot
@@ -1786,8 +1786,8 @@ class RobotSideRunner(_SpaceHost):
         parsed = []
         for index, entry in enumerate(items or []):
             parsed.append(_mark_special(ServiceItem.from_entry(entry, self.i_name, index)))
-        if start_ros_master_port and getattr(self.config, "role", None) == "server":
-            start_ros_master_port = int(getattr(self.config, "ros_port_base", 11311))  # the server's own
+        if start_ros_master_port and self.config.role == "server":
+            start_ros_master_port = self.config.ros_port_base  # the server's own
         if ss_name in self.spaces:
             yield self.stop_items(ss_name)
         space = ServiceSpace(ss_name, "R" if start_ros_master_port else "S", self.key_prefix, None,

@@ -32,6 +32,8 @@ import socket
 import sys
 import tempfile
 
+from .rcmp_config import MAX_NAME_LENGTH, is_name
+
 log = logging.getLogger("rcmp.vpn")
 
 VPN_DIR = "vpn"
@@ -282,8 +284,7 @@ verb 3
 # -- validation -------------------------------------------------------------------------------------------
 
 def _name(value):
-    from .rcmp_command import MAX_NAME_LENGTH, NAME_RE
-    if not value or len(value) > MAX_NAME_LENGTH or not NAME_RE.match(value):
+    if not is_name(value):
         raise argparse.ArgumentTypeError(
             f"not a valid name (a letter, then letters, digits and underscores, at most {MAX_NAME_LENGTH}): "
             f"{value[:80]!r}")

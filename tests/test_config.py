@@ -6,7 +6,7 @@ import subprocess
 
 import pytest
 
-from rcm_platform.rcmp_node import ConfigError, load_config, platform_address, rdapi_address
+from rcm_platform.rcmp_config import ConfigError, load_config, make_config, platform_address, rdapi_address
 from tests.support.polling import wait_until
 from tests.support.ports import free_port
 from tests.support.rcmp_agent import PYTHON, REPO, RcmpAgent
@@ -88,6 +88,16 @@ def test_robot_default_ip_master_is_own_vpn_address_with_last_octet_1(tmp_path):
     assert load_config(tmp_path).ip_master == "10.8.0.1"
     write(tmp_path, "init.cfg", "[main]\nname=r1\nvpn_interface=nosuch0\n")
     assert load_config(tmp_path).ip_master is None  # not known until the VPN is up
+
+
+def test_make_config_gives_what_load_config_gives(tmp_path):
+    """The defaults live in one place: a Config built in code equals the one read from a file with those keys."""
+    assert make_config("master", str(tmp_path)) == load_config(tmp_path)
+    path = write(tmp_path, "init.cfg", "[main]\nname=r1\nrobot=no\nvpn_interface=nosuch0\nros_port_base=12000\n")
+    assert make_config("server", str(tmp_path), path, name="r1", vpn_interface="nosuch0",
+                       ros_port_base=12000) == load_config(tmp_path)
+    with pytest.raises(TypeError):
+        make_config("robot", str(tmp_path), name="r1", no_such_key=1)
 
 
 BAD = [

@@ -15,6 +15,7 @@ from twisted.trial import unittest
 
 from rcm_platform import rcmp_event
 from rcm_platform import rcmp_inter_communication as ic
+from rcm_platform.rcmp_config import make_config
 from tests.support.ports import free_port
 from tests.support.polling import until_deferred
 
@@ -132,9 +133,8 @@ class Runner:
 
 
 def config(name, address, port, role="master", interval=0.2):
-    return types.SimpleNamespace(name=name, role=role, vpn_address=address, vpn_interface="lo",
-                                 ip_master="127.0.0.1", ic_port=port, heartbeat_interval=interval,
-                                 heartbeat_misses=3)
+    return make_config(role, "/nonexistent", name=name, vpn_address=address, vpn_interface="lo",
+                       ip_master="127.0.0.1", ic_port=port, heartbeat_interval=interval, heartbeat_misses=3)
 
 
 class Logged(logging.Handler):

@@ -9,7 +9,6 @@ import signal
 import socket
 import subprocess
 import tempfile
-from types import SimpleNamespace
 
 import pytest
 import rosgraph
@@ -17,6 +16,7 @@ from twisted.internet import defer, reactor, task, threads
 from twisted.trial import unittest
 
 from rcm_platform import rcmp_command, rcmp_ms
+from rcm_platform.rcmp_config import make_config
 from rcm_platform.rcmp_service_command import describe
 from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
 from tests.support.polling import until_deferred
@@ -95,12 +95,10 @@ class ServiceSpaceTests(unittest.TestCase):
                                          stop_timeouts=(3.0, 1.0))
         self.robot_table = ProcessTable(reactor, os.path.join(self.tmp, "robot-log"), settle_time=1.0,
                                         stop_timeouts=(3.0, 1.0))
-        self.master_config = SimpleNamespace(role="master", name="master", vpn_address=MASTER_IP,
-                                             vpn_interface="lo", inbound_open_ports=quiet_ports(2),
-                                             ros_port_base=ros_port_base())
-        self.robot_config = SimpleNamespace(role="robot", name="robot1", vpn_address=ROBOT_IP,
-                                            vpn_interface="lo", inbound_open_ports=[],
-                                            ros_port_base=ros_port_base())
+        self.master_config = make_config("master", self.tmp, vpn_address=MASTER_IP, vpn_interface="lo",
+                                         inbound_open_ports=quiet_ports(2), ros_port_base=ros_port_base())
+        self.robot_config = make_config("robot", self.tmp, name="robot1", vpn_address=ROBOT_IP, vpn_interface="lo",
+                                        ros_port_base=ros_port_base())
         self.exits = []
         self.states = []
         self.runner = RobotSideRunner(reactor, self.robot_table, self.robot_config, env=self.env,
@@ -437,8 +435,8 @@ class ServiceSpaceTests(unittest.TestCase):
         self.master_config.max_service_spaces = 0
         self.manager = ServiceSpaceManager(reactor, self.master_table, self.master_config, "192.0.2.10",
                                            env=self.env, on_state=lambda *a: self.states.append(a[:2]))
-        server_config = SimpleNamespace(role="server", name="vm1", vpn_address=server_ip, vpn_interface="lo",
-                                        inbound_open_ports=[], ros_port_base=ros_port_base(server_ip))
+        server_config = make_config("server", self.tmp, name="vm1", vpn_address=server_ip, vpn_interface="lo",
+                                    ros_port_base=ros_port_base(server_ip))
         server_table = ProcessTable(reactor, os.path.join(self.tmp, "server-log"), settle_time=1.0,
                                     stop_timeouts=(3.0, 1.0))
         server = RobotSideRunner(reactor, server_table, server_config, env=self.env,

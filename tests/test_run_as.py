@@ -104,12 +104,12 @@ def test_run_as_mistakes_stop_the_agent_with_one_line(procs, tmp_path, role, val
 @needs_root
 def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tmp_path):
     from rcm_platform.rcmp_ms import RunAs
-    from rcm_platform.rcmp_node import Config, WorkspaceOverlay, resolve_run_as
+    from rcm_platform.rcmp_config import make_config
+    from rcm_platform.rcmp_node import WorkspaceOverlay, resolve_run_as
     workspace = tmp_path / "rcmp_ws"
     workspace.mkdir()
     os.chown(workspace, NOBODY.pw_uid, NOBODY.pw_gid)
-    config = Config(home=str(tmp_path), role="robot", config_file=None, name="r1", ip_master=None,
-                    inbound_open_ports=[])
+    config = make_config("robot", str(tmp_path), name="r1")
     run_as = resolve_run_as(config, {"RCMP_WS": str(workspace)})
     assert (run_as.name, run_as.uid, run_as.gid) == ("nobody", NOBODY.pw_uid, NOBODY.pw_gid)
     assert run_as.setpriv_args() == [f"--reuid={NOBODY.pw_uid}", f"--regid={NOBODY.pw_gid}", "--init-groups"]

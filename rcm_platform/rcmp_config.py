@@ -1,0 +1,343 @@
+"""The agent's configuration: ``Config``, its keys and their parsers, loading the files, and derived addresses.
+
+This is the package's bottom layer: it imports no other module of ``rcm_platform``, so any module may take a
+``Config`` (and tests build real ones with ``make_config``). Owns:
+
+- ``Config``: every ``[main]`` key of CONTRACTS §1 and the (ext) ones, one field each. A key's default is its
+  field's default, written once here; the two defaults that depend on the role (``name``: ``master`` on the
+  master; ``inbound_open_ports``: ``MASTER_DEFAULT_PORTS`` on the master, none elsewhere) are ``make_config``'s.
+  Nobody else repeats a default (no ``getattr(config, key, default)``): code reads ``config.key``.
+- ``KEYS``: key -> (parser, roles that may set it). A new key is one field of ``Config`` and one entry here
+  (with its parser, if none of the ones below fits).
+- ``load_config(home)``: ``HOME/init.cfg`` (a robot, ``robot=yes``, or a server VM, ``robot=no``) or, when it is
+  absent, the master's optional ``HOME/.init.cfg``; ``ConfigError`` is one line naming the file, the key and
+  the problem (the agent exits 2 with it).
+- derived addresses: ``platform_address`` (the agent's VPN address: ``vpn_address`` or ``vpn_interface``'s),
+  ``rdapi_address`` (the master's RDAPI address: ``ext_address`` or ``ext_interface``'s), looked up with
+  netifaces, and ``master_address_from`` (a robot's default ``ip_master``: its own address with the last octet 1).
+- the platform's name rule (``NAME_RE``, ``MAX_NAME_LENGTH``, ``is_name``): an instance's configured ``name`` and
+  every name the RDAPI takes follow it (``rcmp_command.validate_name`` applies it to user input).
+"""
+
+from __future__ import annotations
+
+import configparser
+import dataclasses
+import ipaddress
+import os
+import re
+import socket
+from typing import Optional
+
+AGENT_ROLES = ("master", "robot", "server")
+DEFAULT_LOG_MAX_BYTES = 1024 * 1024
+MASTER_DEFAULT_PORTS = (10100, 10101, 10102, 10103)
+
+MAX_NAME_LENGTH = 64
+NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+
+
+def is_name(value):
+    """True when ``value`` follows the platform's name rule: a letter, then letters, digits and underscores, at
+    most ``MAX_NAME_LENGTH`` characters (ROS graph names without slashes)."""
+    return isinstance(value, str) and 0 < len(value) <= MAX_NAME_LENGTH and NAME_RE.match(value) is not None
+
+
+class ConfigError(Exception):
+    """A configuration problem; ``str()`` is one line naming the file, the key and the problem."""
+
+
+@dataclasses.dataclass
+class Config:
+    home: str
+    role: str                          # "master" | "robot" | "server"
+    config_file: Optional[str]         # HOME/init.cfg, HOME/.init.cfg or None
+    name: str
+    ip_master: Optional[str] = None    # robot, server: the master's VPN address (load_config derives a default)
+    inbound_open_ports: list = dataclasses.field(default_factory=list)   # the master's default: make_config
+    vpn_interface: str = "tun0"
+    vpn_address: Optional[str] = None
+    ext_interface: str = "eth0"
+    ext_address: Optional[str] = None
+    ext_port: int = 80
+    ic_port: int = 9999
+    ros_port_base: int = 11311
+    heartbeat_interval: float = 2.0    # (ext) seconds between heartbeats
+    heartbeat_misses: int = 3          # (ext) missed beats before a peer is gone
+    log_max_bytes: int = DEFAULT_LOG_MAX_BYTES   # (ext) size at which rcmp.log rolls over
+    rdapi_tls_cert: Optional[str] = None  # (ext) master: PEM certificate (chain): the RDAPI speaks HTTPS
+    rdapi_tls_key: Optional[str] = None   # (ext) master: its PEM private key
+    allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
+    run_as: Optional[str] = None       # (ext) the user service items run as (default: the workspace's owner)
+    max_starting_spaces: Optional[int] = None    # (ext) service spaces the master builds at once (None: 2 per core)
+    ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit)
+    ic_max_per_address: Optional[int] = None     # (ext) agent-port connections from one address (None: 8)
+    max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
+
+
+def make_config(role, home, config_file=None, **values):
+    """A ``Config`` for ``role`` with that role's defaults under ``values`` (what ``load_config`` gives for a file
+    holding just those keys, without reading anything): ``name`` defaults to ``master`` on the master (a robot's
+    or server's must be given: ``load_config`` takes the host name), ``inbound_open_ports`` to
+    ``MASTER_DEFAULT_PORTS`` on the master and to none elsewhere. TypeError for a key ``Config`` does not have."""
+    if role not in AGENT_ROLES:
+        raise ValueError(f"role must be one of {', '.join(AGENT_ROLES)}, not {role!r}")
+    if role == "master":
+        values.setdefault("name", "master")
+        values.setdefault("inbound_open_ports", list(MASTER_DEFAULT_PORTS))
+    return Config(home=home, role=role, config_file=config_file, **values)
+
+
+# -- parsers: text of a key -> its value, ValueError with the problem ---------------------------------------------
+
+def _parse_port(value):
+    try:
+        port = int(value, 10)
+    except ValueError:
+        raise ValueError(f"not a port number: {value!r}") from None
+    if not 1 <= port <= 65535:
+        raise ValueError(f"not a port number (1-65535): {value!r}")
+    return port
+
+
+def _parse_ports(value):
+    ports = []
+    for part in value.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        port = _parse_port(part)
+        if port in ports:
+            raise ValueError(f"port {port} is listed twice: {value!r}")
+        ports.append(port)
+    return ports
+
+
+def _parse_bool(value):
+    lowered = value.strip().lower()
+    if lowered in ("yes", "true", "on", "1"):
+        return True
+    if lowered in ("no", "false", "off", "0"):
+        return False
+    raise ValueError(f"expected yes or no: {value!r}")
+
+
+def _parse_ipv4(value):
+    try:
+        return str(ipaddress.IPv4Address(value.strip()))
+    except ValueError:
+        raise ValueError(f"not an IPv4 address: {value!r}") from None
+
+
+def _parse_name(value):
+    value = value.strip()
+    if not is_name(value):
+        raise ValueError(f"not a valid instance name (a letter, then letters, digits and underscores, "
+                         f"at most {MAX_NAME_LENGTH}): {value!r}")
+    return value
+
+
+def _parse_interface(value):
+    value = value.strip()
+    if not value or len(value) > 15 or "/" in value or any(c.isspace() for c in value):
+        raise ValueError(f"not a network interface name: {value!r}")
+    return value
+
+
+def _parse_positive_float(value):
+    try:
+        number = float(value)
+    except ValueError:
+        raise ValueError(f"not a number: {value!r}") from None
+    if not 0 < number < 3600:
+        raise ValueError(f"must be more than 0 and less than 3600 seconds: {value!r}")
+    return number
+
+
+def _int_parser(minimum, maximum):
+    def parse(value):
+        try:
+            number = int(value, 10)
+        except ValueError:
+            raise ValueError(f"not a whole number: {value!r}") from None
+        if not minimum <= number <= maximum:
+            raise ValueError(f"must be between {minimum} and {maximum}: {value!r}")
+        return number
+    return parse
+
+
+def _parse_path(value):
+    value = value.strip()
+    if not value or not os.path.isabs(value) or "\x00" in value:
+        raise ValueError(f"not an absolute file path: {value!r}")
+    return value
+
+
+def _parse_origins(value):
+    origins = []
+    for part in value.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        if not re.match(r"https?://[A-Za-z0-9.-]+(:[0-9]{1,5})?\Z|https?://\[[0-9A-Fa-f:.]+\](:[0-9]{1,5})?\Z",
+                        part):
+            raise ValueError(f"not an origin (scheme://host or scheme://host:port, scheme http or https, no "
+                             f"path): {part!r}")
+        origins.append(part.lower())
+    return tuple(origins)
+
+
+def _parse_user(value):
+    value = value.strip()
+    if not re.match(r"[a-z_][a-z0-9_-]{0,31}\Z", value):
+        raise ValueError(f"not a user name (lower-case letters, digits, _ and -, at most 32): {value!r}")
+    return value
+
+
+# key -> (parser, roles that may set it); every key but ``robot`` is a field of Config
+KEYS = {
+    "name": (_parse_name, AGENT_ROLES),
+    "robot": (_parse_bool, ("robot", "server")),
+    "ip_master": (_parse_ipv4, ("robot", "server")),
+    "inbound_open_ports": (_parse_ports, AGENT_ROLES),
+    "vpn_interface": (_parse_interface, AGENT_ROLES),
+    "vpn_address": (_parse_ipv4, AGENT_ROLES),
+    "ext_interface": (_parse_interface, ("master",)),
+    "ext_address": (_parse_ipv4, ("master",)),
+    "ext_port": (_parse_port, ("master",)),
+    "ic_port": (_parse_port, AGENT_ROLES),
+    "ros_port_base": (_parse_port, ("master", "server")),
+    "heartbeat_interval": (_parse_positive_float, AGENT_ROLES),
+    "heartbeat_misses": (_int_parser(1, 1000), AGENT_ROLES),
+    "log_max_bytes": (_int_parser(1024, 1024 ** 3), AGENT_ROLES),
+    "rdapi_tls_cert": (_parse_path, ("master",)),
+    "rdapi_tls_key": (_parse_path, ("master",)),
+    "allowed_origins": (_parse_origins, ("master",)),
+    "max_starting_spaces": (_int_parser(1, 1000), ("master",)),
+    "max_service_spaces": (_int_parser(0, 100000), ("master", "server")),
+    "ic_max_connections": (_int_parser(1, 100000), ("master",)),
+    "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
+    "run_as": (_parse_user, AGENT_ROLES),
+}
+
+
+# -- loading ------------------------------------------------------------------------------------------------------
+
+def _read_file(path):
+    parser = configparser.ConfigParser(interpolation=None, strict=True, inline_comment_prefixes=None)
+    parser.optionxform = str  # keys are case-sensitive, as written in the seed
+    try:
+        with open(path, encoding="utf-8") as f:
+            parser.read_file(f)
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except configparser.MissingSectionHeaderError as exc:
+        raise ConfigError(f"{path}: line {exc.lineno}: a key before the [main] section") from None
+    except configparser.DuplicateOptionError as exc:
+        raise ConfigError(f"{path}: key '{exc.option}': given twice") from None
+    except configparser.DuplicateSectionError as exc:
+        raise ConfigError(f"{path}: section [{exc.section}] given twice") from None
+    except configparser.Error as exc:
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConfigError(f"{path}: {first}") from None
+    sections = parser.sections()
+    if "main" not in sections:
+        raise ConfigError(f"{path}: no [main] section")
+    for section in sections:
+        if section != "main":
+            raise ConfigError(f"{path}: unknown section [{section}] (only [main] is read)")
+    return dict(parser.items("main"))
+
+
+def _host_name():
+    return socket.gethostname().split(".")[0]
+
+
+def load_config(home):
+    """Read and validate the configuration of the agent living in ``home``; raise ConfigError on any problem."""
+    home = os.path.abspath(home)
+    if not os.path.isdir(home):
+        raise ConfigError(f"{home}: the platform folder does not exist")
+    robot_file = os.path.join(home, "init.cfg")
+    master_file = os.path.join(home, ".init.cfg")
+    if os.path.exists(robot_file):
+        path, raw = robot_file, _read_file(robot_file)
+        try:
+            is_robot = _parse_bool(raw["robot"]) if "robot" in raw else True
+        except ValueError as exc:
+            raise ConfigError(f"{path}: key 'robot': {exc}") from None
+        role = "robot" if is_robot else "server"
+    else:
+        role = "master"
+        path = master_file if os.path.exists(master_file) else None
+        raw = _read_file(master_file) if path else {}
+
+    values = {}
+    for key, text in raw.items():
+        if key not in KEYS:
+            raise ConfigError(f"{path}: unknown key '{key}'")
+        parser, roles = KEYS[key]
+        if role not in roles:
+            what = {"master": "the master", "robot": "a robot", "server": "a server VM"}[role]
+            raise ConfigError(f"{path}: key '{key}': not used by {what}")
+        try:
+            values[key] = parser(text)
+        except ValueError as exc:
+            raise ConfigError(f"{path}: key '{key}': {exc}") from None
+    values.pop("robot", None)
+
+    if "name" not in values and role != "master":
+        host = _host_name()
+        try:
+            values["name"] = _parse_name(host)
+        except ValueError:
+            raise ConfigError(f"{path}: key 'name': not set, and the host name {host!r} is not a valid "
+                              f"instance name: set name=") from None
+    config = make_config(role, home, path, **values)
+    if config.role == "master":
+        clash = {config.ext_port, config.ic_port} & set(config.inbound_open_ports)
+        if config.ext_port == config.ic_port or clash:
+            raise ConfigError(f"{path or master_file}: key 'ic_port': the ports ext_port, ic_port and "
+                              f"inbound_open_ports must all differ")
+    if config.role == "master" and (config.rdapi_tls_cert is None) != (config.rdapi_tls_key is None):
+        given, missing = (("rdapi_tls_cert", "rdapi_tls_key") if config.rdapi_tls_cert
+                          else ("rdapi_tls_key", "rdapi_tls_cert"))
+        raise ConfigError(f"{path}: key '{missing}': needed with '{given}' (HTTPS needs a certificate and its key)")
+    if config.role != "master" and config.ip_master is None:
+        address = platform_address(config)
+        if address is not None:
+            config.ip_master = master_address_from(address)
+    return config
+
+
+# -- derived addresses --------------------------------------------------------------------------------------------
+
+def master_address_from(own_address):
+    """The master's address when ``ip_master`` is not set: the agent's own VPN address with the last octet 1
+    (a robot whose address appears late, with the VPN, applies it when it says hello)."""
+    parts = own_address.split(".")
+    return ".".join(parts[:3] + ["1"])
+
+
+def _interface_ipv4(interface):
+    try:
+        import netifaces
+        addresses = netifaces.ifaddresses(interface).get(netifaces.AF_INET, [])
+    except (ImportError, ValueError):
+        return None
+    for entry in addresses:
+        if entry.get("addr"):
+            return entry["addr"]
+    return None
+
+
+def platform_address(config):
+    """The agent's platform (VPN) address: ``vpn_address``, or the IPv4 address of ``vpn_interface``, or None."""
+    return config.vpn_address or _interface_ipv4(config.vpn_interface)
+
+
+def rdapi_address(config):
+    """The master's RDAPI address: ``ext_address``, or the IPv4 address of ``ext_interface``, or None."""
+    return config.ext_address or _interface_ipv4(config.ext_interface)
