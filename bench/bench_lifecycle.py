@@ -34,7 +34,7 @@ if ROOT not in sys.path:
 import rosgraph  # noqa: E402
 
 from bench.report import load_average, percentile, write_section  # noqa: E402
-from rcm_platform.rcmp_ms import OsFacade  # noqa: E402
+from rcm_platform.rcmp_process import OsFacade  # noqa: E402
 from tests.support.lifecycle import Platform  # noqa: E402
 from tests.support.polling import WaitTimeout, wait_until  # noqa: E402
 from tests.support.ports import free_port  # noqa: E402

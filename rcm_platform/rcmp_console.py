@@ -39,6 +39,7 @@ from twisted.internet.interfaces import IPushProducer
 from zope.interface import implementer
 
 from .rcmp_command import CommandError, child_env, validate_name
+from .rcmp_process import DONE_STATES, LIVE_STATES
 
 log = logging.getLogger("rcm_platform.console")
 
@@ -223,7 +224,7 @@ class Console:
 
     def _process_changed(self, managed, old, new):
         self.changed()
-        if managed.key.startswith("console/watch/") and new in ("exited", "failed"):
+        if managed.key.startswith("console/watch/") and new in DONE_STATES:
             watch = self.watches.get(managed.key[len("console/watch/"):])
             if watch is not None and watch.process is managed and not watch.stopping:
                 watch.failed(f"the topic watcher {managed.error or 'ended'}")
@@ -442,7 +443,7 @@ class Console:
         if len([w for w in self.watches.values() if not w.stopping]) >= MAX_WATCHES:
             raise WatchLimit(f"the console already watches {MAX_WATCHES} service spaces; close a topic view first")
         old = self.table.get(f"console/watch/{ss_name}")
-        if old is not None and old.state in ("starting", "running", "stopping"):
+        if old is not None and old.state in LIVE_STATES:
             raise WatchLimit(f"the topic watcher of '{ss_name}' is still stopping; try again in a moment")
         watch = TopicWatch(self, ss_name, space.ros_master_uri, getattr(self.spaces, "address", None))
         self.watches[ss_name] = watch

@@ -276,16 +276,16 @@ class StartupError(Exception):
 
 
 def _top_service(config, reactor, table):
-    """The agent's MultiService. With a table of its own: ``rcmp_ms.TableService``, which stops whatever the
+    """The agent's MultiService. With a table of its own: ``rcmp_process.TableService``, which stops whatever the
     agent left in the table once the agent has stopped (``top.table``). Given the managed VPN's table
     (``build_agent``): a plain MultiService, the outer TableService stops that table after the VPN."""
     from twisted.application import service
-    from . import rcmp_ms
+    from . import rcmp_process
     if table is not None:
         top = service.MultiService()
         top.table = table
         return top
-    return rcmp_ms.TableService(rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log")))
+    return rcmp_process.TableService(rcmp_process.ProcessTable(reactor, os.path.join(config.home, "log")))
 
 
 def build_master(config, reactor, table=None):
@@ -357,13 +357,13 @@ def build_agent(config, reactor, on_error=None):
     With a managed VPN (``rcmp_vpn.managed_config``) the MultiService holds OpenVPN first (stopped last) and the
     agent, built once the VPN gave the agent its address; ``on_error(message)`` is told if that build fails.
     """
-    from . import rcmp_ms, rcmp_vpn
+    from . import rcmp_process, rcmp_vpn
     build = build_master if config.role == "master" else build_robot
     conf = rcmp_vpn.managed_config(config)
     if conf is None:
         return build(config, reactor)
-    table = rcmp_ms.ProcessTable(reactor, os.path.join(config.home, "log"))
-    top = rcmp_ms.TableService(table)   # stops what the VPN and the agent left, after both stopped
+    table = rcmp_process.ProcessTable(reactor, os.path.join(config.home, "log"))
+    top = rcmp_process.TableService(table)   # stops what the VPN and the agent left, after both stopped
     vpn = rcmp_vpn.ManagedVpn(config, conf, table, reactor, lambda: platform_address(config))
     rcmp_vpn.VpnFirst(vpn, rcmp_vpn.AfterVpn(vpn, lambda: build(config, reactor, table),
                                              on_error or log.error)).setServiceParent(top)
@@ -525,8 +525,8 @@ def main(argv=None):
         return _fail(str(exc), 2)
     # after the imports (a fleet of agents starting at once on one machine should not import ahead of the
     # agents already serving), before any thread (niceness is per thread)
-    from . import rcmp_ms
-    boost = rcmp_ms.raise_agent_priority()
+    from . import rcmp_process
+    boost = rcmp_process.raise_agent_priority()
     if boost:
         log.info("rcmp_n runs %d nice levels above the processes it starts (they keep nice %d)", boost,
                  os.nice(0) + boost)

@@ -33,6 +33,7 @@ import sys
 import tempfile
 
 from .rcmp_config import MAX_NAME_LENGTH, is_name
+from .rcmp_process import FAILED, STARTING
 
 log = logging.getLogger("rcmp.vpn")
 
@@ -626,11 +627,11 @@ class ManagedVpn(_service_base()):
         env = {"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "LANG": "C.UTF-8"}
         self.process = self.table.spawn(self.KEY, openvpn_argv(self.conf_path), env, "openvpn")
         self.process.listeners.append(self._changed)
-        if self.process.state == "failed":   # could not even be spawned
-            self._changed(self.process, "starting", "failed")
+        if self.process.state == FAILED:   # could not even be spawned
+            self._changed(self.process, STARTING, FAILED)
 
     def _changed(self, process, old, new):
-        if process is not self.process or new != "failed" or not self.running:
+        if process is not self.process or new != FAILED or not self.running:
             return
         ran = self.reactor.seconds() - (process.started_at or self.reactor.seconds())
         if ran >= STABLE_AFTER:

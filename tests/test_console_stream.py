@@ -12,7 +12,7 @@ from twisted.internet import defer, reactor
 from twisted.trial import unittest
 from twisted.web.test.requesthelper import DummyRequest
 
-from rcm_platform import rcmp_console, rcmp_ms
+from rcm_platform import rcmp_console, rcmp_process
 from rcm_platform.rcmp_platform_command import PlatformCommands
 from rcm_platform.rcmp_robotics_data import RoboticsData
 from tests.support.polling import until_deferred
@@ -105,7 +105,7 @@ class ConsoleStreamTest(unittest.TestCase):
         self.addCleanup(shutil.rmtree, tmp, True)
         self.data = RoboticsData(os.path.join(tmp, "robotics_data.db"))
         self.addCleanup(self.data.close)
-        self.table = rcmp_ms.ProcessTable(reactor, os.path.join(tmp, "log"), settle_time=0.2,
+        self.table = rcmp_process.ProcessTable(reactor, os.path.join(tmp, "log"), settle_time=0.2,
                                           stop_timeouts=(1.0, 1.0))
         self.addCleanup(self.table.stop_all)
         self.spaces = StandInSpaces()

@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from rcm_platform.rcmp_ms import AGENT_PRIORITY_BOOST
+from rcm_platform.rcmp_process import AGENT_PRIORITY_BOOST
 from tests.support.lifecycle import Platform
 from tests.support.polling import wait_until
 

@@ -1,4 +1,4 @@
-"""rcmp_ms.ProcessTable: one test per state transition with a recording OS facade and task.Clock, then
+"""rcmp_process.ProcessTable: one test per state transition with a recording OS facade and task.Clock, then
 real children (setsid, process groups, escalation, logs) under a running Twisted reactor."""
 
 import os
@@ -13,8 +13,8 @@ from twisted.internet import defer, error as ierror, reactor, task
 from twisted.python.failure import Failure
 from twisted.trial import unittest
 
-from rcm_platform import rcmp_ms
-from rcm_platform.rcmp_ms import EXITED, FAILED, RUNNING, STARTING, STOPPING, ProcessTable
+from rcm_platform import rcmp_process
+from rcm_platform.rcmp_process import EXITED, FAILED, RUNNING, STARTING, STOPPING, ProcessTable
 from tests.support.processes import group_alive
 
 
@@ -316,19 +316,19 @@ def test_stop_of_unknown_or_finished_child_fires_at_once(tmp_path):
 def test_invalid_transitions_are_refused(tmp_path):
     table, clock, fake = make_table(tmp_path)
     mp = spawn(table)
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(rcmp_process.InvalidTransition):
         mp._transition(EXITED, "not stopping")
     fake.end(mp, code=1)
     for target in (RUNNING, STOPPING, FAILED, EXITED):
-        with pytest.raises(rcmp_ms.InvalidTransition):
+        with pytest.raises(rcmp_process.InvalidTransition):
             mp._transition(target, "from failed")
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(rcmp_process.InvalidTransition):
         mp._transition("zombie", "not a state")
 
 
 def test_transitions_are_logged_old_to_new(tmp_path, caplog):
     table, clock, fake = make_table(tmp_path)
-    caplog.set_level("INFO", logger="rcm_platform.rcmp_ms")
+    caplog.set_level("INFO", logger="rcm_platform.rcmp_process")
     mp = spawn(table)
     clock.advance(1)
     assert f"process item (pid {mp.pid}): starting -> running" in caplog.text
@@ -448,7 +448,7 @@ class RealProcessTests(unittest.TestCase):
     def test_descendant_in_its_own_session_is_stopped_too(self):
         mp = self.spawn("parent", SPAWN_GRANDCHILD)
         yield self.wait_for(lambda: "ready" in mp.tail())
-        grandchildren = rcmp_ms.OsFacade(reactor).descendants(mp.pid)
+        grandchildren = rcmp_process.OsFacade(reactor).descendants(mp.pid)
         self.assertEqual(len(grandchildren), 1)
         self.pgids.extend(grandchildren)
         yield self.table.stop("parent")
@@ -463,7 +463,7 @@ class RealProcessTests(unittest.TestCase):
         mp = self.spawn("crashing-parent", code)
         settled = yield mp.when_settled()
         self.assertTrue(settled)
-        grandchildren = rcmp_ms.OsFacade(reactor).descendants(mp.pid)
+        grandchildren = rcmp_process.OsFacade(reactor).descendants(mp.pid)
         self.assertEqual(len(grandchildren), 1)
         self.pgids.extend(grandchildren)
         yield self.wait_for(lambda: mp.state == FAILED)
@@ -497,7 +497,7 @@ class RealProcessTests(unittest.TestCase):
             self.assertFalse(ignored & (1 << (sig - 1)), f"{sig!r} still ignored in the child")
 
     def test_a_recent_proc_scan_may_serve_but_a_plain_look_is_fresh(self):
-        facade = rcmp_ms.OsFacade(reactor)
+        facade = rcmp_process.OsFacade(reactor)
         facade.descendants(os.getpid(), max_age=60)             # scans /proc, remembered
         child = subprocess.Popen(["/bin/sleep", "30"])
         try:
@@ -523,7 +523,7 @@ class RealProcessTests(unittest.TestCase):
     def test_stopping_the_agents_services_stops_what_they_left_in_the_table(self):
         """TableService: the last safety net. An agent service that forgets a child does not leave it running."""
         from twisted.application import service
-        top = rcmp_ms.TableService(self.table)
+        top = rcmp_process.TableService(self.table)
         forgetful = service.Service()             # an agent whose own teardown stops nothing
         forgetful.setServiceParent(top)
         top.startService()
@@ -537,7 +537,7 @@ class RealProcessTests(unittest.TestCase):
 AGENT = """
 import os, sys
 from twisted.internet import reactor
-from rcm_platform.rcmp_ms import ProcessTable
+from rcm_platform.rcmp_process import ProcessTable
 table = ProcessTable(reactor, sys.argv[1])
 def start():
     child = table.spawn("sleeper", [sys.executable, "-c", "import time; time.sleep(120)"], dict(os.environ), "s")

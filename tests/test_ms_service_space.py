@@ -18,7 +18,8 @@ from twisted.trial import unittest
 from rcm_platform import rcmp_command, rcmp_ms
 from rcm_platform.rcmp_config import make_config
 from rcm_platform.rcmp_service_command import describe
-from rcm_platform.rcmp_ms import FAILED, RUNNING, ProcessTable, RobotSideRunner, ServiceSpaceManager
+from rcm_platform.rcmp_ms import RobotSideRunner, ServiceSpaceManager
+from rcm_platform.rcmp_process import FAILED, LIVE_STATES, RUNNING, InvalidTransition, ProcessTable
 from tests.support.polling import until_deferred
 from tests.support.ports import port_accepts, ros_port_base
 from tests.support.processes import ros_env
@@ -459,7 +460,7 @@ class ServiceSpaceTests(unittest.TestCase):
                             what="the robot's node at the server's ROS master")
         yield self.manager.teardown("robot1")
         self.assertEqual(server.spaces, {})
-        self.assertEqual([p for p in server_table.processes() if p.state in rcmp_ms.LIVE_STATES], [])
+        self.assertEqual([p for p in server_table.processes() if p.state in LIVE_STATES], [])
 
 
 def _try(condition):
@@ -534,20 +535,20 @@ def test_child_env_points_at_the_space():
 def test_a_space_changes_state_only_as_its_closed_set_allows():
     space = rcmp_ms.ServiceSpace("robot1", "S", "ss", None, "master")
     assert (space.state, space.creating, space.paired, space.cancelled) == ("creating", True, False, False)
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(InvalidTransition):
         space.transition(rcmp_ms.SPACE_GONE, "a space is stopped before it is gone")
     space.transition(rcmp_ms.SPACE_UNPAIRED, "created")
     space.transition(rcmp_ms.SPACE_PAIRED, "its items run")
     assert space.paired and not space.creating
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(InvalidTransition):
         space.transition(rcmp_ms.SPACE_CREATING, "never again")
     space.transition(rcmp_ms.SPACE_STOPPING, "teardown")
     assert space.cancelled and not space.paired
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(InvalidTransition):
         space.transition(rcmp_ms.SPACE_PAIRED, "a stopping space never pairs again")
     space.transition(rcmp_ms.SPACE_GONE, "torn down")
     assert space.cancelled
-    with pytest.raises(rcmp_ms.InvalidTransition):
+    with pytest.raises(InvalidTransition):
         space.transition("lost", "not a state")
 
 
