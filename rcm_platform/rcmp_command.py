@@ -1,28 +1,24 @@
 """Errors a user can cause and the validation of everything a user sends to the RDAPI.
 
 Owns ``CommandError`` and its subclasses (each carries the HTTP status the RDAPI answers with and a sentence naming
-the problem), the rules for names (ROS graph names without slashes: a letter, then letters, digits and
-underscores, at most 64 characters), the validation of service nodes and service launchers, and the splitting of
-params as a shell would split them (``shlex.split``; no shell ever runs them) and the rules of what params may
-hold (``check_params``: a launcher's only ``arg:=value``; no item's the ROS specials that redirect a process).
+the problem: ``BadRequest`` 400, ``Unauthorized`` 401, ``Forbidden`` 403, ``NotFound`` 404, ``MethodNotAllowed``
+405, ``Conflict`` 409, ``TooLarge`` 413, ``UnsupportedMediaType`` 415); the validation of names (the platform's
+name rule, ``rcmp_config.NAME_RE``: ROS graph names without slashes), of service nodes and service launchers
+(``validate_service_item``, ``validate_service_logic``, ``logic_entries``) and of request bodies; the splitting
+of params as a shell would split them (``split_params``, the only place where params become words: ``shlex``,
+no shell ever runs them) and the rules of what params may hold (``check_params``: a launcher's only
+``arg:=value``; no item's the ROS specials that redirect a process); the RDAPI token roles (``TOKEN_ROLES``).
 
 Also owns ``ReadCache``: the answers of the read commands kept in memory until the robotics data changes (see
 ``RoboticsData.generation``), so that reads do not go to SQLite (and to a thread) while nothing changed.
 
-And what a validated service item becomes when it runs: ``ServiceItem`` (built only from
-``validate_service_item``'s result, so the runtime never sees an unchecked item) with the command lines and the
-environment of its child (``node_argv``, ``launcher_argv``, ``child_env``), the node list of a launcher through
-roslaunch's own loader (``launcher_nodes``), and the graph name a node registers under (``graph_name``).
-``split_params`` is the only place where params are split into words. ``NodeExecutables`` finds the file that
-``rosrun PKG TYPE`` would run, the way roslaunch finds it, so that a node starts as one exec instead of through
-rosrun's bash, ``catkin_find`` and ``rospack`` (0.2 CPU-seconds per node, measured: docs/PERFORMANCE.md).
+What a validated service item becomes when it runs (its command line, environment and user) is
+``rcmp_service_item``'s.
 """
 
 import functools
-import os
 import re
 import shlex
-import time
 
 from twisted.internet import defer
 
@@ -35,6 +31,7 @@ MAX_ITEMS = 256
 PACKAGE_RE = re.compile(r"[A-Za-z][A-Za-z0-9_-]*\Z")
 FILE_RE = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*\Z")
 SIDES = ("S", "R")
+TOKEN_ROLES = ("read", "admin")   # an RDAPI token's role: read (GET calls only) or admin (every call)
 
 
 class CommandError(Exception):
@@ -211,15 +208,6 @@ def validate_service_item(list_field, item, index=0):
     return result
 
 
-def _item_list_field(entry):
-    """``sn_list`` for a service node entry, ``sl_list`` for a launcher entry (BadRequest for neither)."""
-    if isinstance(entry, dict) and "sn_name" in entry:
-        return "sn_list"
-    if isinstance(entry, dict) and "sl_name" in entry:
-        return "sl_list"
-    raise BadRequest(f"a service item must be an object with 'sn_name' or 'sl_name', not {_show(entry)}")
-
-
 def _json_type(value):
     if value is None:
         return "null"
@@ -234,6 +222,28 @@ def _json_type(value):
     if isinstance(value, dict):
         return "an object"
     return type(value).__name__
+
+
+def item_list_field(entry):
+    """``sn_list`` for a service node entry, ``sl_list`` for a launcher entry (BadRequest for neither)."""
+    if isinstance(entry, dict) and "sn_name" in entry:
+        return "sn_list"
+    if isinstance(entry, dict) and "sl_name" in entry:
+        return "sl_list"
+    raise BadRequest(f"a service item must be an object with 'sn_name' or 'sl_name', not {_show(entry)}")
+
+
+def logic_entries(service_logic):
+    """``(list_field, index, entry)`` of every item entry of a service logic dict (as stored, or as the master
+    sends it): the ``sn_list`` nodes, then the ``sl_list`` launchers; BadRequest when a list is not a list. Each
+    entry still needs ``validate_service_item``."""
+    entries = []
+    for list_field in ("sn_list", "sl_list"):
+        found = service_logic.get(list_field) or []
+        if not isinstance(found, list):
+            raise BadRequest(f"'{list_field}' must be a list, not {_json_type(found)}")
+        entries.extend((list_field, index, entry) for index, entry in enumerate(found))
+    return entries
 
 
 def require_fields(body, required, optional=()):
@@ -303,239 +313,3 @@ class ReadCache:
             self._entries.clear()
         self._entries[key] = (generation, value)
         return value
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Service items as they run: argv, environment, launcher node lists.
-
-ROS_PATH_PREFIX = ["/usr/bin", "/bin", "/usr/sbin", "/sbin"]
-# An item's own state while it has no process (or failed without one): the words of rcmp_ms's process states.
-ITEM_STARTING = "starting"
-ITEM_FAILED = "failed"
-
-
-def child_env(base_env, ros_master_uri, address, ros_log_dir):
-    """The environment of a ROS child: the agent's, /usr/bin first on PATH, the space's master and address."""
-    env = dict(os.environ if base_env is None else base_env)
-    rest = [p for p in env.get("PATH", "").split(":") if p and p not in ROS_PATH_PREFIX]
-    env["PATH"] = ":".join(ROS_PATH_PREFIX + rest)
-    env["ROS_MASTER_URI"] = ros_master_uri
-    env["ROS_IP"] = address
-    env["ROS_HOSTNAME"] = address
-    env["ROS_LOG_DIR"] = ros_log_dir
-    env["PYTHONUNBUFFERED"] = "1"
-    env.pop("ROS_NAMESPACE", None)
-    return env
-
-
-def node_argv(package, node_type, name, params=""):
-    """``rosrun PKG TYPE PARAMS __name:=NAME`` as an argv list (params split as a shell would, no shell)."""
-    return ["rosrun", package, node_type, *split_params(params or ""), "__name:=" + name]
-
-
-class NodeExecutables:
-    """The file ``rosrun PKG TYPE`` runs, found with roslaunch's own lookup (``roslib.packages.find_node``) and
-    remembered, so that an agent starting many nodes runs each directly (``direct_argv``).
-
-    Same choice as rosrun: one executable match is it; of two, the one in the package's catkin ``libexec``
-    folder (a devel-space relay of the other). Anything else (no such package or executable, an ambiguous
-    name, an environment whose package paths differ from the agent's, where the lookup would not be the
-    child's) keeps the ``rosrun`` argv, so rosrun's own error reaches the item's log. A remembered file is used
-    while it is still executable; the package crawl is redone after ``ttl`` seconds. Blocking (a crawl of
-    the package path the first time, a few milliseconds): called on the reactor thread when a node starts.
-    rospkg, roslib and catkin are imported when this is made (at an agent's start, on its main thread: an
-    import in a thread while the reactor forks a child can deadlock CPython, and one made during a fleet's
-    arrival would stall the reactor while the cores are busiest).
-    """
-
-    PATH_KEYS = ("ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH")
-
-    def __init__(self, ttl=60.0, clock=time.monotonic):
-        try:   # python3-roslib (which brings rospkg and catkin) comes with rospy; without it, rosrun decides
-            import catkin.find_in_workspaces  # noqa: F401  (see the docstring)
-            import roslib.packages  # noqa: F401
-            import rospkg  # noqa: F401
-            self.available = True
-        except ImportError:
-            self.available = False
-        self.ttl = ttl
-        self.clock = clock
-        self._rospack = None
-        self._crawled = None
-        self._found = {}
-
-    def direct_argv(self, argv, env):
-        """``argv`` with ``rosrun PKG TYPE`` replaced by the executable it would run, when that is certain."""
-        if not self.available or len(argv) < 3 or argv[0] != "rosrun" or argv[1].startswith("-"):
-            return list(argv)
-        if any(env.get(key, "") != os.environ.get(key, "") for key in self.PATH_KEYS):
-            return list(argv)
-        path = self.find(argv[1], argv[2])
-        return [path, *argv[3:]] if path else list(argv)
-
-    def find(self, package, node_type):
-        """The executable's path, or None when rosrun itself must decide (and say what is wrong)."""
-        path = self._found.get((package, node_type))
-        if path is not None and os.access(path, os.X_OK):
-            return path
-        path = self._lookup(package, node_type)
-        if path is None:
-            self._found.pop((package, node_type), None)
-        else:
-            if len(self._found) >= 1024:
-                self._found.clear()
-            self._found[(package, node_type)] = path
-        return path
-
-    def _lookup(self, package, node_type):
-        import rospkg
-        import roslib.packages
-        from catkin.find_in_workspaces import find_in_workspaces
-        now = self.clock()
-        if self._rospack is None or now - self._crawled > self.ttl:
-            self._rospack, self._crawled = rospkg.RosPack(), now
-        try:
-            matches = roslib.packages.find_node(package, node_type, rospack=self._rospack)
-            if len(matches) == 2:
-                libexec = find_in_workspaces(search_dirs=["libexec"], project=package,
-                                             first_matching_workspace_only=True)
-                matches = [m for m in matches if any(m.startswith(d.rstrip("/") + "/") for d in libexec)]
-        except Exception:  # rospkg.ResourceNotFound, an unreadable package.xml: rosrun will say
-            return None
-        return matches[0] if len(matches) == 1 else None
-
-
-def launcher_argv(package, launch_file, params="", sigint_timeout=2.0, sigterm_timeout=1.0):
-    """``roslaunch --wait PKG FILE PARAMS`` with roslaunch's own stop timeouts inside ours.
-
-    ``--wait``: the space's master is already up when items start; should it be gone, a launcher must wait
-    (and show as not paired) rather than start a ROS master of its own on the space's port.
-    """
-    return ["roslaunch", "--wait", f"--sigint-timeout={sigint_timeout:g}",
-            f"--sigterm-timeout={sigterm_timeout:g}", package, launch_file, *split_params(params or "")]
-
-
-def launcher_nodes(package, launch_file, params=""):
-    """[(node name without leading slash, package, type)] that ``roslaunch PKG FILE PARAMS`` would start.
-
-    Uses roslaunch's own loader (no output parsing); blocking: call it in a thread. Raises
-    ``roslaunch.core.RLException`` (its message names the problem) for a missing package, file or arg.
-    """
-    import roslaunch.config
-    import roslaunch.rlutil
-    args = split_params(params or "")
-    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)  # drops name:=value
-    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
-                                                  assign_machines=False)
-    nodes = []
-    for node in config.nodes:
-        full = (node.namespace or "/") + node.name
-        nodes.append((full.lstrip("/"), node.package, node.type))
-    return nodes
-
-
-def graph_name(name, params=""):
-    """The ROS graph name ``rosrun PKG TYPE PARAMS __name:=NAME`` registers under: ``/NAME``, or
-    ``/NS/NAME`` when the params hold ``__ns:=NS`` (params that do not split: the plain name)."""
-    try:
-        words = split_params(params or "")
-    except BadRequest:
-        words = []
-    namespace = next((w.split(":=", 1)[1] for w in reversed(words) if w.startswith("__ns:=")), "")
-    namespace = namespace.strip("/")
-    return f"/{namespace}/{name}" if namespace else f"/{name}"
-
-
-class ServiceItem:
-    """One node or launcher of a service space, run here (``process``) or on the robot (``remote``).
-
-    Built only from a validated entry (``from_entry``); ``special`` is the runtime's hooks for the nodes it
-    treats specially (FIROS, rcm_driver: ``rcmp_ms.SPECIAL_ITEMS``), None for the others.
-    """
-
-    def __init__(self, kind, name, package, type_or_file, params, side, i_name):
-        self.kind = kind
-        self.name = name
-        self.package = package
-        self.type_or_file = type_or_file
-        self.params = params or ""
-        self.side = side
-        self.i_name = i_name
-        self.special = None
-        self.process = None     # ManagedProcess, when run by this agent
-        self.remote = None      # the robot's item report, when run there
-        self.own_state = ITEM_STARTING
-        self.error = None       # set when the item failed before or without a process
-        self.nodes = []         # ROS node names (the node itself, or the launcher's nodes)
-        self.node_types = {}    # launcher node name -> (package, type)
-        self.driver_port = None
-        self.inbound_port = None
-
-    @classmethod
-    def from_entry(cls, entry, i_name, index=0, list_field=None):
-        """A ServiceItem from a service logic entry (``sn_*`` node or ``sl_*`` launcher fields; ``list_field``
-        says which, else the name field does), validated by ``validate_service_item``; BadRequest says why."""
-        list_field = list_field or _item_list_field(entry)
-        checked = validate_service_item(list_field, entry, index)
-        if list_field == "sn_list":
-            return cls("node", checked["sn_name"], checked["sn_package"], checked["sn_type"],
-                       checked["sn_params"], checked["sn_side"], i_name)
-        return cls("launcher", checked["sl_name"], checked["sl_package"], checked["sl_file_launcher"],
-                   checked["sl_params"], checked["sl_side"], i_name)
-
-    def to_dict(self):
-        """The service logic entry this item came from (what a robot is sent)."""
-        if self.kind == "node":
-            return {"sn_package": self.package, "sn_type": self.type_or_file, "sn_name": self.name,
-                    "sn_params": self.params, "sn_side": self.side}
-        return {"sl_package": self.package, "sl_file_launcher": self.type_or_file, "sl_name": self.name,
-                "sl_params": self.params, "sl_side": self.side}
-
-    def argv(self, params=None, extra=()):
-        """The item's argv (never a shell): ``params`` replaces the item's own, ``extra`` words go last."""
-        params = self.params if params is None else params
-        if self.kind == "launcher":
-            return launcher_argv(self.package, self.type_or_file, params) + list(extra)
-        return node_argv(self.package, self.type_or_file, self.name, params) + list(extra)
-
-    @property
-    def state(self):
-        if self.remote is not None:
-            return self.remote.get("state", ITEM_FAILED)
-        if self.process is not None and self.error is None:
-            return self.process.state
-        return self.own_state
-
-    @property
-    def current_error(self):
-        if self.remote is not None:
-            return self.remote.get("error")
-        if self.error is not None:
-            return self.error
-        return self.process.error if self.process is not None else None
-
-    def fail(self, error):
-        self.error = error
-        self.own_state = ITEM_FAILED
-
-    def report(self):
-        """The item report of docs/DESIGN.md (what a robot returns to the master)."""
-        if self.remote is not None:
-            return dict(self.remote)
-        return {"kind": self.kind, "name": self.name, "package": self.package,
-                "type_or_file": self.type_or_file, "side": self.side, "i_name": self.i_name,
-                "state": self.state, "error": self.current_error, "nodes": list(self.nodes),
-                "node_types": {n: list(t) for n, t in self.node_types.items()}}
-
-
-def items_of_logic(service_logic, i_name=None):
-    """The ServiceItems of a service logic dict (``sn_list`` nodes, then ``sl_list`` launchers); BadRequest
-    names the first bad entry."""
-    items = []
-    for list_field in ("sn_list", "sl_list"):
-        entries = service_logic.get(list_field) or []
-        if not isinstance(entries, list):
-            raise BadRequest(f"'{list_field}' must be a list, not {_json_type(entries)}")
-        for index, entry in enumerate(entries):
-            items.append(ServiceItem.from_entry(entry, i_name, index, list_field))
-    return items

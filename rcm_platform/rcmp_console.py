@@ -38,8 +38,9 @@ from twisted.web import resource, server
 from twisted.internet.interfaces import IPushProducer
 from zope.interface import implementer
 
-from .rcmp_command import CommandError, child_env, validate_name
+from .rcmp_command import CommandError, validate_name
 from .rcmp_process import DONE_STATES, LIVE_STATES
+from .rcmp_service_item import child_env
 
 log = logging.getLogger("rcm_platform.console")
 
@@ -495,11 +496,9 @@ class TopicWatch:
 
     def start(self, port):
         package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-        env = child_env(self.console.env, self.ros_master_uri, self.address,
-                        os.path.join(self.console.table.log_dir, "ros"))
         run_as = getattr(self.console.spaces, "run_as", None)   # it reads robots' traffic: never as root
-        if run_as is not None:
-            env = run_as.environment(env)
+        env = child_env(self.console.env, self.ros_master_uri, self.address,
+                        os.path.join(self.console.table.log_dir, "ros"), user=run_as)
         env["PYTHONPATH"] = package_root + (":" + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
         argv = ["/usr/bin/python3", "-m", "rcm_platform.rcmp_console", "watch", "--port", str(port),
                 "--name", self.ss_name]

@@ -67,7 +67,6 @@ REQUEST_DEADLINE = 15.0     # seconds from a request's first line to its last bo
 
 TOKEN_REFRESH = 1.0         # seconds between re-reads of the token table
 TOKEN_RE = re.compile(r"[A-Za-z0-9._~+/=-]{1,256}\Z")
-ROLES = ("read", "admin")
 
 
 # -- tokens --------------------------------------------------------------------------------------------------------

@@ -30,12 +30,8 @@ builds the runtime and hands it (and the function giving the platform address) t
 """
 
 import collections
-import dataclasses
-import json
 import logging
 import os
-import shlex
-import signal
 import socket
 import uuid
 from typing import Protocol
@@ -44,122 +40,15 @@ from twisted.internet import defer, task, threads
 from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
-from rcm_platform.rcmp_process import (DONE_STATES, FAILED, RUNNING, SETPRIV, STARTING, InvalidTransition,
-                                       nice_prefix)
-from rcm_platform.rcmp_command import (CommandError, NodeExecutables, ServiceItem, child_env, graph_name,
-                                       items_of_logic, launcher_nodes, split_params)
+from rcm_platform.rcmp_command import CommandError
+from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, InvalidTransition
+from rcm_platform.rcmp_service_item import (NodeExecutables, ServiceItem, child_env, graph_name, items_of_logic,
+                                            launcher_nodes, launcher_nodes_as)
 
-xmlrpc.QueryFactory.noisy = False  # one "Starting factory" log line per XML-RPC call to a ROS master is noise
+# one "Starting factory" log line per XML-RPC call to a ROS master is noise (Twisted 18.9 names it _QueryFactory)
+(getattr(xmlrpc, "QueryFactory", None) or xmlrpc._QueryFactory).noisy = False
 
 log = logging.getLogger(__name__)
-
-
-
-@dataclasses.dataclass(frozen=True)
-class RunAs:
-    """The user service items run as (CONTRACTS §10 ``run_as``), with their own HOME and ROS_HOME.
-
-    ``home`` is the user's home folder when it exists and is theirs; otherwise (``nobody``) a private folder
-    made for them under the system's temp folder. ``ros_home`` is ``home/.ros`` (ROS logs go to its ``log``).
-    """
-
-    name: str
-    uid: int
-    gid: int
-    home: str
-    ros_home: str
-    overlay: object = None   # the workspace overlay (``rcmp_node.WorkspaceOverlay``) when this user owns it
-
-    @classmethod
-    def for_user(cls, entry, overlay=None):
-        """From a ``pwd`` entry; makes the fallback home (0700, theirs) when theirs is missing or not theirs.
-        ``overlay``: the workspace this user owns, whose code paths their children may use."""
-        home = entry.pw_dir
-        try:
-            usable = os.path.isdir(home) and os.stat(home).st_uid == entry.pw_uid
-        except OSError:
-            usable = False
-        if not usable:
-            home = cls._private_home(entry)
-        return cls(entry.pw_name, entry.pw_uid, entry.pw_gid, home, os.path.join(home, ".ros"), overlay)
-
-    @staticmethod
-    def _private_home(entry):
-        """``TMP/rcmp-home-NAME`` (0700, the user's), reused across starts when it is still a real folder of
-        theirs that nobody else can enter; else a fresh ``mkdtemp`` (someone else made that name first)."""
-        import stat
-        import tempfile
-        path = os.path.join(tempfile.gettempdir(), f"rcmp-home-{entry.pw_name}")
-        try:
-            os.mkdir(path, 0o700)
-            os.chown(path, entry.pw_uid, entry.pw_gid)
-            return path
-        except FileExistsError:
-            info = os.lstat(path)
-            if stat.S_ISDIR(info.st_mode) and info.st_uid == entry.pw_uid and not info.st_mode & 0o077:
-                return path
-        path = tempfile.mkdtemp(prefix=f"rcmp-home-{entry.pw_name}-")
-        os.chown(path, entry.pw_uid, entry.pw_gid)
-        return path
-
-    def setpriv_args(self):
-        """``setpriv`` options that make a child this user, with their groups."""
-        return [f"--reuid={self.uid}", f"--regid={self.gid}", "--init-groups"]
-
-    def environment(self, env):
-        """``env`` with this user's HOME, USER, LOGNAME, ROS_HOME and ROS_LOG_DIR (ROS_HOME/log), and the code
-        paths of the workspace they own."""
-        env = self.overlay.for_child(env, as_owner=True) if self.overlay is not None else dict(env)
-        env.update(HOME=self.home, USER=self.name, LOGNAME=self.name, ROS_HOME=self.ros_home,
-                   ROS_LOG_DIR=os.path.join(self.ros_home, "log"))
-        return env
-
-
-# What ``launcher_nodes_as`` runs in its child, as the run_as user: roslaunch's loader, as ``launcher_nodes`` uses
-# it in the agent, answering JSON on stdout (exit 3 and the message on stderr for roslaunch's own errors).
-LAUNCHER_NODES_PROGRAM = r"""
-import json, sys
-import roslaunch.config, roslaunch.core, roslaunch.rlutil
-package, launch_file, args = sys.argv[1], sys.argv[2], sys.argv[3:]
-try:
-    resolved = roslaunch.rlutil.resolve_launch_arguments([package, launch_file] + args)
-    config = roslaunch.config.load_config_default([(resolved[0], [resolved[0]] + args)], None, verbose=False,
-                                                  assign_machines=False)
-except roslaunch.core.RLException as exc:
-    sys.stderr.write(str(exc))
-    sys.exit(3)
-json.dump([[((n.namespace or "/") + n.name).lstrip("/"), n.package, n.type] for n in config.nodes], sys.stdout)
-"""
-
-
-def launcher_nodes_as(user, env, package, launch_file, params="", timeout=30.0):
-    """``launcher_nodes`` read in a child process running as ``user`` (a ``RunAs``), so that what a launch file
-    runs while it is loaded (``<param command=...>``, ``$(eval ...)``) never runs as the agent's root.
-
-    Blocking: call it in a thread. Raises RuntimeError with roslaunch's message (or why the child failed).
-    """
-    import subprocess
-    argv = [*nice_prefix(), SETPRIV, *user.setpriv_args(), "--pdeathsig", "KILL", "--", "/usr/bin/python3", "-c",
-            LAUNCHER_NODES_PROGRAM, package, launch_file, *split_params(params or "")]
-    child = subprocess.Popen(argv, env=user.environment(env), cwd=user.home, stdin=subprocess.DEVNULL,
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, start_new_session=True)
-    try:
-        out, err = child.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        os.killpg(child.pid, signal.SIGKILL)
-        child.communicate()
-        raise RuntimeError(f"reading the launch file as {user.name} took more than {timeout:g} s") from None
-    message = err.decode("utf-8", "replace").strip()
-    if child.returncode == 3:
-        raise RuntimeError(message.splitlines()[-1] if message else "roslaunch refused the launch file")
-    if child.returncode != 0:
-        last = message.splitlines()[-1] if message else f"exit status {child.returncode}"
-        raise RuntimeError(f"reading the launch file as {user.name} failed: {last}")
-    try:
-        return [tuple(entry) for entry in json.loads(out)]
-    except ValueError:
-        raise RuntimeError(f"reading the launch file as {user.name} gave no node list") from None
-
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -211,82 +100,6 @@ def _tcp_port_free(port, host=""):
 
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Special items: the nodes the runtime treats specially, recognised in one place, with hooks.
-
-class SpecialItem:
-    """Hooks the runtime calls for one kind of special node; the defaults do nothing."""
-
-    name = None
-    announces_entities = False   # it publishes the robot as an entity (rcm_driver waits for e_removed)
-
-    def prepare(self, host, space, item):
-        """Before spawning: take what the item needs (ports); raise SpaceError when it cannot."""
-
-    def params(self, item):
-        """The params the item runs with."""
-        return item.params
-
-    def extra_argv(self, item):
-        """Words after the item's argv."""
-        return []
-
-    def started(self, host, space, item):
-        """After the space's items started (the item runs): a Deferred or None."""
-
-    def stopping(self, host, space, item):
-        """When the space is torn down, before any item stops: a Deferred or None."""
-
-
-class FirosItem(SpecialItem):
-    """FIROS: one of the inbound open ports (``-P``); the space's ``inbound_port`` is that port."""
-
-    name = "firos"
-    announces_entities = True
-
-    def prepare(self, host, space, item):
-        item.inbound_port = host._take_inbound_port(space)
-        space.inbound_port = item.inbound_port
-
-    def extra_argv(self, item):
-        return ["-P", str(item.inbound_port)]
-
-
-class RcmDriverItem(SpecialItem):
-    """rcm_driver: a free local ``port=N``, told ``r_connection`` once it runs and ``r_disconnection`` before
-    the space stops, over a TCP connection kept open (``rcmp_inter_communication.DriverLink``)."""
-
-    name = "rcm_driver"
-
-    def prepare(self, host, space, item):
-        item.driver_port = host._choose_driver_port()
-
-    def params(self, item):
-        kept = [p for p in split_params(item.params) if not p.startswith("port=")]
-        return shlex.join(kept + [f"port={item.driver_port}"])
-
-    def started(self, host, space, item):
-        if item.process is not None and item.state == RUNNING:
-            return host._connect_driver(space, item)
-        return None
-
-    def stopping(self, host, space, item):
-        return host._say_goodbye_to_driver(space)
-
-
-# (package, node type) -> hooks; only nodes (kind "node") are special
-SPECIAL_ITEMS = {
-    ("firos", "core.py"): FirosItem(),
-    ("rcm", "rcm_driver.py"): RcmDriverItem(),
-}
-
-
-def _mark_special(item):
-    if item.kind == "node":
-        item.special = SPECIAL_ITEMS.get((item.package, item.type_or_file))
-    return item
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -460,7 +273,7 @@ class _SpaceHost:
                 return port
         raise SpaceError(f"no free port for a ROS master between {base} and {min(base + 999, 65535)}")
 
-    def _choose_driver_port(self):
+    def choose_driver_port(self):
         """A local port for a space's rcm_driver: rcm_driver's default (9998) or the next free one above it.
         Never a port-0 (ephemeral) port: any process's outgoing or port-0 socket can take one of those between
         our check and the driver's bind, and the agent would then say r_connection to a stranger."""
@@ -471,7 +284,7 @@ class _SpaceHost:
                 return port
         raise SpaceError(f"no free local port for rcm_driver between {RCM_DRIVER_PORT} and {RCM_DRIVER_PORT + 999}")
 
-    def _take_inbound_port(self, space):
+    def take_inbound_port(self, space):
         ports = list(self.config.inbound_open_ports)
         users = {s.inbound_port: s.name for s in self.spaces.values() if s.inbound_port}
         for port in ports:
@@ -665,23 +478,16 @@ class _SpaceHost:
         item.node_types = {n: (p, t) for n, p, t in nodes}
 
     def _child_env(self, space):
-        """The environment of the space's processes (``child_env``), with the run_as user's own HOME, ROS_HOME
-        and ROS_LOG_DIR when there is one, and ``RCMP_HOME`` naming the agent's folder they belong to."""
-        env = child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir)
-        if self.run_as is not None:
-            env = self.run_as.environment(env)
-            env["RCMP_HOME"] = os.path.dirname(self.table.log_dir)
-        return env
+        """The environment of the space's processes (``child_env``), as the items' user when there is one."""
+        return child_env(self.env, space.ros_master_uri, space.address, self.ros_log_dir, user=self.run_as,
+                         agent_home=os.path.dirname(self.table.log_dir))
 
     def _spawn_item(self, space, item, env):
-        special = item.special
         try:
-            argv = item.argv(special.params(item), special.extra_argv(item)) if special else item.argv()
+            argv = item.spawn_argv(env, self.executables)
         except CommandError as exc:  # params that do not split (validation lets none through)
             item.fail(f"cannot split the params {item.params!r}: {exc}")
             return
-        if item.kind == "node":
-            argv = self.executables.direct_argv(argv, env)
         item.process = self.table.spawn(space.key(item.kind, item.name), argv, env, f"{space.name}-{item.name}",
                                         user=self.run_as)
         item.process.listeners.append(lambda mp, old, new: self._item_changed(space, item, new))
@@ -701,7 +507,7 @@ class _SpaceHost:
             if item.special is not None and item.process is not None:
                 yield item.special.started(self, space, item)
 
-    def _connect_driver(self, space, item):
+    def connect_driver(self, space, item):
         """Connect to rcm_driver's port once it accepts and say r_connection for the robot."""
         def attempt():
             if space.cancelled or item.state not in (STARTING, RUNNING):
@@ -742,7 +548,7 @@ class _SpaceHost:
                                     for item in space.items if item.special is not None], consumeErrors=True)
 
     @defer.inlineCallbacks
-    def _say_goodbye_to_driver(self, space):
+    def say_goodbye_to_driver(self, space):
         link, space.driver_link = space.driver_link, None
         if link is None:
             return
@@ -922,7 +728,7 @@ class ServiceSpaceManager(_SpaceHost):
             raise ValueError(f"ss_side must be S or R, got {service_logic.get('ss_side')!r}")
         robot_name = getattr(robot, "name", pi_name) if robot is not None else pi_name
         try:
-            items = [_mark_special(item) for item in items_of_logic(service_logic)]
+            items = items_of_logic(service_logic)
         except CommandError as exc:
             raise ValueError(f"service logic of {pi_name}: {exc}") from None
         remote = [i for i in items if i.side == "R"]
@@ -1163,7 +969,7 @@ class RobotSideRunner(_SpaceHost):
         valid service item fails the Deferred with the sentence naming it (nothing starts)."""
         parsed = []
         for index, entry in enumerate(items or []):
-            parsed.append(_mark_special(ServiceItem.from_entry(entry, self.i_name, index)))
+            parsed.append(ServiceItem.from_entry(entry, self.i_name, index))
         if start_ros_master_port and self.config.role == "server":
             start_ros_master_port = self.config.ros_port_base  # the server's own
         if ss_name in self.spaces:

@@ -1,40 +1,29 @@
-"""The agent ``rcmp_n``: command line, configuration, logging, addresses, and assembling the agent for its role.
+"""The agent ``rcmp_n``: command line, logging, the agent's own files, and assembling the agent for its role.
 
 Owns:
 - the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``, the ``vpn`` subcommand whose
   work is ``rcmp_vpn``'s, and ``rcmp_n token add NAME --role read|admin`` / ``token list`` / ``token revoke
   NAME``, which manage the RDAPI's tokens in the master's robotics data (the token is printed once; the agent
-  need not be stopped)) and ``main()``;
-- the configuration files and their validation: ``HOME/init.cfg`` (robot ``robot=yes`` or server VM
-  ``robot=no``) or, when it is absent, the master's optional ``HOME/.init.cfg``; every ``[main]`` key of
-  CONTRACTS §1 plus the (ext) keys ``heartbeat_interval``, ``heartbeat_misses``, ``log_max_bytes`` and the
-  master's ``rdapi_tls_cert`` / ``rdapi_tls_key`` (HTTPS, loaded at start) and ``allowed_origins`` (CORS), and
-  ``run_as`` (the user service items run as: ``resolve_run_as``)
-  (``Config``, ``ConfigError``, ``load_config``); a bad value stops the agent with one line naming the file,
-  the key and the problem, exit status 2;
+  need not be stopped)) and ``main()``: a bad configuration (``rcmp_config.load_config``'s ``ConfigError``)
+  stops the agent with its one line, exit status 2;
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
   Twisted's own log goes to the same place;
-- the platform address (VPN) and the RDAPI address (external interface), looked up with netifaces;
-- the agent's files and environment as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data
-  tightened (``tighten_files``), and the catkin workspace named by ``RCMP_WS`` turned into an environment by
-  running its ``devel/setup.bash`` as the workspace's owner, never as root (``workspace_overlay``,
-  ``WorkspaceOverlay.for_child``, ``apply_workspace``);
+- the agent's own files as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data tightened
+  (``tighten_files``); at start the catkin workspace named by ``RCMP_WS`` goes into the agent's environment
+  (``rcmp_service_item.apply_workspace``);
 - the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
-  SIGTERM/SIGINT before the process exits 0.
+  SIGTERM/SIGINT before the process exits 0. It builds the process table, the space runtime, the address
+  function and the items' user (``rcmp_service_item.resolve_run_as``) and passes them in.
 """
 
 import argparse
-import dataclasses
 import functools
 import logging
 import logging.handlers
 import os
-import pwd
 import signal
 import sqlite3
-import stat
-import subprocess
 import sys
 
 from .rcmp_config import ConfigError, load_config, platform_address, rdapi_address
@@ -70,14 +59,9 @@ def setup_logging(config, level=logging.INFO, to_stderr=True):
     globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="twisted")], redirectStandardIO=False)
 
 
-# -- files and the workspace (the agent runs as root: CONTRACTS §10, docs/SECURITY.md) ---------------------------
+# -- the agent's own files (it runs as root: CONTRACTS §10, docs/SECURITY.md) --------------------------------------
 
 UMASK = 0o027   # the agent's files 0640, its folders 0750
-# catkin's variables: search paths naming packages (safe for root to read) and code-loading ones (safe only for
-# a child running as the workspace's owner, or when the workspace is root's alone)
-OVERLAY_SEARCH_KEYS = ("ROS_PACKAGE_PATH", "CMAKE_PREFIX_PATH", "ROSLISP_PACKAGE_DIRECTORIES")
-OVERLAY_CODE_KEYS = ("PYTHONPATH", "LD_LIBRARY_PATH", "PKG_CONFIG_PATH", "PATH")
-SYSTEM_PATH = "/usr/bin:/bin:/usr/sbin:/sbin"
 
 
 def tighten_files(home):
@@ -99,180 +83,19 @@ def tighten_files(home):
             continue
 
 
-def root_only(path):
-    """True when ``path`` and every folder above it are root's and not writable by group or others (a sticky
-    folder such as /tmp excepted): nobody but root can change what is there."""
-    path = os.path.abspath(path)
-    while True:
-        try:
-            st = os.lstat(path)
-        except OSError:
-            return False
-        if st.st_uid != 0:
-            return False
-        if stat.S_ISLNK(st.st_mode):
-            if not root_only(os.path.realpath(path)):
-                return False
-        elif st.st_mode & 0o022 and not (stat.S_ISDIR(st.st_mode) and st.st_mode & stat.S_ISVTX):
-            return False
-        parent = os.path.dirname(path)
-        if parent == path:
-            return True
-        path = parent
-
-
-@dataclasses.dataclass(frozen=True)
-class WorkspaceOverlay:
-    """A catkin workspace's environment, obtained by running its ``devel/setup.bash`` as the workspace's owner."""
-    workspace: str
-    owner_uid: int
-    owner_gid: int
-    trusted: bool      # the workspace is root's alone: its code may run as root
-    search: dict       # OVERLAY_SEARCH_KEYS found
-    code: dict         # OVERLAY_CODE_KEYS found
-
-    def for_child(self, env, as_owner=False):
-        """``env`` plus this overlay: the search paths always, the code paths only for a child running as the
-        workspace's owner (``as_owner``) or when the workspace is trusted. System folders stay first on PATH."""
-        env = dict(env)
-        env.update(self.search)
-        if as_owner or self.trusted:
-            for key, value in self.code.items():
-                if key == "PATH":
-                    extra = [p for p in value.split(":") if p and p not in SYSTEM_PATH.split(":")]
-                    rest = [p for p in env.get("PATH", "").split(":") if p and p not in SYSTEM_PATH.split(":")]
-                    env["PATH"] = ":".join([SYSTEM_PATH] + rest + [p for p in extra if p not in rest])
-                else:
-                    env[key] = value
-        return env
-
-
-_overlays = {}
-
-
-def workspace_overlay(workspace, timeout=30.0):
-    """The overlay of ``workspace`` (``None`` without ``devel/setup.bash``), computed once per path.
-
-    The script runs in an empty environment as the owner of the workspace folder (``setpriv`` when we are root
-    and the owner is not), never as root for somebody else's files. Raises ``OSError`` when it cannot be run.
-    """
-    workspace = os.path.abspath(workspace)
-    if workspace in _overlays:
-        return _overlays[workspace]
-    setup = os.path.join(workspace, "devel", "setup.bash")
-    if not os.path.isfile(setup):
-        return None
-    st = os.stat(workspace)
-    try:
-        user = pwd.getpwuid(st.st_uid)
-        home, groups = user.pw_dir, ["--init-groups"]
-    except KeyError:
-        home, groups = "/", ["--clear-groups"]
-    argv = ["/bin/bash", "--noprofile", "--norc", "-c", '. "$1" >/dev/null 2>&1 || exit 3; exec env -0',
-            "rcmp_n-workspace", setup]
-    if os.geteuid() == 0 and st.st_uid != 0:
-        argv = ["/usr/bin/setpriv", f"--reuid={st.st_uid}", f"--regid={st.st_gid}", *groups, "--", *argv]
-    result = subprocess.run(argv, env={"PATH": SYSTEM_PATH, "HOME": home, "LC_ALL": "C"}, cwd="/",
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            timeout=timeout, check=False)
-    if result.returncode != 0:
-        raise OSError(f"{setup} failed (exit status {result.returncode})")
-    found = dict(item.decode("utf-8", "replace").split("=", 1)
-                 for item in result.stdout.split(b"\0") if b"=" in item)
-    overlay = WorkspaceOverlay(
-        workspace, st.st_uid, st.st_gid, root_only(workspace) and st.st_uid == 0,
-        {k: found[k] for k in OVERLAY_SEARCH_KEYS if found.get(k)},
-        {k: found[k] for k in OVERLAY_CODE_KEYS if found.get(k)})
-    _overlays[workspace] = overlay
-    return overlay
-
-
-def apply_workspace(environ):
-    """With ``RCMP_WS`` set (rcmpd sets it), put the workspace's overlay into ``environ`` as ``for_child`` says
-    for a root child; returns the overlay or None. Problems are logged, never fatal."""
-    workspace = environ.get("RCMP_WS")
-    if not workspace:
-        return None
-    try:
-        overlay = workspace_overlay(workspace)
-    except (OSError, subprocess.SubprocessError) as exc:
-        log.warning("workspace %s: no overlay: %s", workspace, exc)
-        return None
-    if overlay is None:
-        log.warning("workspace %s has no devel/setup.bash: items find only the system's packages", workspace)
-        return None
-    environ.update(overlay.for_child(environ))
-    log.info("workspace %s (owner uid %d): %s", workspace, overlay.owner_uid,
-             "root's alone: its code may run as root" if overlay.trusted
-             else "not root's: its packages are found, its code runs only as its owner")
-    return overlay
-
-
-# -- the user service items run as ---------------------------------------------------------------------------------
-
-def default_workspace(environ=None):
-    """The ROS workspace the installer made: ``$RCMP_WS`` (``rcmpd`` passes it), else ``~/rcmp_ws``."""
-    environ = os.environ if environ is None else environ
-    return environ.get("RCMP_WS") or os.path.join(environ.get("HOME") or os.path.expanduser("~"), "rcmp_ws")
-
-
-def resolve_run_as(config, environ=None):
-    """The ``rcmp_ms.RunAs`` service items run as, or None when they run as the agent's own user.
-
-    ``run_as`` if set, else the owner of the workspace (``default_workspace``). The agent must be root to run
-    them as anyone else; without ``run_as`` and without a workspace (a platform not installed, run by hand) the
-    items run as the agent's own user, and a root agent says so in the log. StartupError (one line) for a user
-    that does not exist, or a non-root agent asked to run items as another user.
-    """
-    from .rcmp_ms import RunAs
-    where = config.config_file or os.path.join(config.home, "init.cfg" if config.role != "master" else ".init.cfg")
-    euid = os.geteuid()
-    name = config.run_as
-    if name is None:
-        workspace = default_workspace(environ)
-        try:
-            owner = os.stat(workspace).st_uid
-        except OSError:
-            if euid == 0:
-                log.warning("service items run as root: no run_as in %s and no ROS workspace at %s to take its "
-                            "owner from (set run_as=USER; docs/SECURITY.md)", where, workspace)
-            return None
-        try:
-            name = pwd.getpwuid(owner).pw_name
-        except KeyError:
-            raise StartupError(f"{workspace}: owned by uid {owner}, which is no user of this machine: set run_as "
-                               f"in {where}") from None
-        how = f"the owner of {workspace}"
-    else:
-        how = f"run_as in {where}"
-    try:
-        entry = pwd.getpwnam(name)
-    except KeyError:
-        raise StartupError(f"{where}: key 'run_as': there is no user {name!r} on this machine") from None
-    if entry.pw_uid == euid:
-        if euid == 0:
-            log.info("service items run as root (%s)", how)
-        return None
-    if euid != 0:
-        raise StartupError(f"{where}: key 'run_as': the agent runs as uid {euid}, not root, so it cannot run "
-                           f"service items as {name!r}: remove run_as or start the agent as root")
-    overlay = None
-    if (environ if environ is not None else os.environ).get("RCMP_WS"):
-        try:
-            overlay = workspace_overlay(default_workspace(environ))
-        except (OSError, subprocess.SubprocessError):
-            overlay = None   # apply_workspace has said why
-    # the workspace's code paths (PYTHONPATH, ...) are safe for children running as its owner only
-    run_as = RunAs.for_user(entry, overlay if overlay is not None and overlay.owner_uid == entry.pw_uid else None)
-    log.info("service items run as %s (uid %d, %s), HOME %s%s", name, entry.pw_uid, how, run_as.home,
-             ", with its workspace's code paths" if run_as.overlay is not None else "")
-    return run_as
-
-
 # -- assembly ---------------------------------------------------------------------------------------------------
 
 class StartupError(Exception):
     """The agent cannot start (no address, data file unusable, cannot listen); ``str()`` is one line."""
+
+
+def _items_user(config):
+    """``rcmp_service_item.resolve_run_as``, its refusal as a StartupError."""
+    from .rcmp_service_item import RunAsError, resolve_run_as
+    try:
+        return resolve_run_as(config)
+    except RunAsError as exc:
+        raise StartupError(str(exc)) from None
 
 
 def _top_service(config, reactor, table):
@@ -317,7 +140,7 @@ def build_master(config, reactor, table=None):
             tls = tls_options(config.rdapi_tls_cert, config.rdapi_tls_key)
         except TlsError as exc:
             raise StartupError(f"{where}: keys 'rdapi_tls_cert'/'rdapi_tls_key': {exc}") from None
-    run_as = resolve_run_as(config)
+    run_as = _items_user(config)
     top = _top_service(config, reactor, table)
     table = top.table
     address = functools.partial(platform_address, config)
@@ -341,7 +164,7 @@ def build_master(config, reactor, table=None):
 def build_robot(config, reactor, table=None):
     """A robot or a server VM: the RobotAgent as one MultiService."""
     from . import rcmp_event, rcmp_ms
-    run_as = resolve_run_as(config)
+    run_as = _items_user(config)
     top = _top_service(config, reactor, table)
     table = top.table
     address = functools.partial(platform_address, config)
@@ -388,6 +211,7 @@ def parse_args(argv):
     parser.add_argument("--no-stderr", action="store_true",
                         help="log only to HOME/log/rcmp.log, not to stderr (for running as a daemon)")
     from . import rcmp_vpn
+    from .rcmp_command import TOKEN_ROLES
     commands = parser.add_subparsers(dest="command", metavar="COMMAND",
                                      help="without a command, run the agent; 'vpn' manages the platform's VPN "
                                           "('rcmp_n vpn --help'), 'token' the RDAPI's tokens ('rcmp_n token --help')")
@@ -406,9 +230,6 @@ def parse_args(argv):
     for sub in (token, add, revoke, actions.choices["list"]):
         sub.add_argument("--home", metavar="DIR", default=argparse.SUPPRESS, help=home_help)
     return parser.parse_args(argv)
-
-
-TOKEN_ROLES = ("read", "admin")
 
 
 def token_command(args):
@@ -503,6 +324,7 @@ def main(argv=None):
     except OSError as exc:
         return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", 1)
     tighten_files(config.home)
+    from .rcmp_service_item import apply_workspace
     apply_workspace(os.environ)
 
     from twisted.internet import reactor

@@ -21,7 +21,7 @@ import datetime
 import sqlite3
 import threading
 
-from .rcmp_command import Conflict, NotFound
+from .rcmp_command import TOKEN_ROLES, Conflict, NotFound
 
 SCHEMA_VERSION = 2
 
@@ -88,7 +88,6 @@ CREATE TABLE service_space (
 
 # version -> the statements that bring a file of that version to the next one
 MIGRATIONS = {1: TOKEN_TABLE}
-TOKEN_ROLES = ("read", "admin")
 
 # Written on first start only: a user may remove them and they stay removed.
 DEFAULT_SERVICE_LOGICS = [

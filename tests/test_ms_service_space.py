@@ -15,7 +15,7 @@ import rosgraph
 from twisted.internet import defer, reactor, task, threads
 from twisted.trial import unittest
 
-from rcm_platform import rcmp_command, rcmp_ms
+from rcm_platform import rcmp_command, rcmp_ms, rcmp_service_item
 from rcm_platform.rcmp_config import make_config
 from rcm_platform.rcmp_service_command import describe
 from rcm_platform.rcmp_ms import RobotSideRunner, ServiceSpaceManager
@@ -403,7 +403,7 @@ class ServiceSpaceTests(unittest.TestCase):
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
         space = yield self.manager.create("robot1", logic, None)
         self.assertTrue(space.paired, describe(self.manager, "robot1"))
-        driver = [i for i in space.items if i.special is rcmp_ms.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]][0]
+        driver = [i for i in space.items if i.special is rcmp_service_item.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]][0]
         self.assertIn(f"port={driver.driver_port}", driver.process.argv)
         # rcm_driver's default port or the next free ones, never an ephemeral (port-0) one that a stranger can take
         self.assertTrue(rcmp_ms.RCM_DRIVER_PORT <= driver.driver_port < 32768, driver.driver_port)
@@ -476,15 +476,15 @@ def _node_names(master):
 
 
 def test_item_argv_never_goes_through_a_shell():
-    assert rcmp_command.node_argv("pkg", "node.py", "n1", "a:=1 'b c' _x:=2") == [
+    assert rcmp_service_item.node_argv("pkg", "node.py", "n1", "a:=1 'b c' _x:=2") == [
         "rosrun", "pkg", "node.py", "a:=1", "b c", "_x:=2", "__name:=n1"]
-    argv = rcmp_command.launcher_argv("pkg", "x.launch", "prefix:=p; rm -rf /")
+    argv = rcmp_service_item.launcher_argv("pkg", "x.launch", "prefix:=p; rm -rf /")
     assert argv[0] == "roslaunch" and "--wait" in argv
     assert argv[-6:] == ["pkg", "x.launch", "prefix:=p;", "rm", "-rf", "/"]  # just words; nothing runs them
 
 
 def test_node_executables_find_what_rosrun_would_run():
-    found = rcmp_command.NodeExecutables()
+    found = rcmp_service_item.NodeExecutables()
     env = dict(os.environ)
     argv = found.direct_argv(["rosrun", "robotics_test", "talker.py", "_a:=1", "__name:=t"], env)
     assert argv[0].endswith("/robotics_test/scripts/talker.py") and os.access(argv[0], os.X_OK)
@@ -512,7 +512,7 @@ def test_node_executables_forget_a_file_that_is_no_longer_executable(tmp_path, m
     script.write_text("#!/usr/bin/python3\n")
     script.chmod(0o755)
     monkeypatch.setenv("ROS_PACKAGE_PATH", f"{tmp_path / 'src'}:{os.environ.get('ROS_PACKAGE_PATH', '')}")
-    found = rcmp_command.NodeExecutables()
+    found = rcmp_service_item.NodeExecutables()
     assert found.find("tmp_pkg", "n.py") == str(script)
     script.chmod(0o644)
     assert found.find("tmp_pkg", "n.py") is None
@@ -520,8 +520,8 @@ def test_node_executables_forget_a_file_that_is_no_longer_executable(tmp_path, m
 
 
 def test_child_env_points_at_the_space():
-    env = rcmp_command.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
-                             "ROS_NAMESPACE": "/x"}, "http://10.8.0.1:11312/", "10.8.0.1", "/h/log/ros")
+    env = rcmp_service_item.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
+                                       "ROS_NAMESPACE": "/x"}, "http://10.8.0.1:11312/", "10.8.0.1", "/h/log/ros")
     assert env["PATH"].split(":")[0] == "/usr/bin"
     assert env["PATH"].endswith("/root/.pyenv/shims")
     assert env["ROS_MASTER_URI"] == "http://10.8.0.1:11312/"
@@ -557,9 +557,9 @@ def test_special_items_are_recognised_in_one_table():
                          node("d", package="rcm", node_type="rcm_driver.py", params="port=1 x:=2"),
                          node("t")],
              "sl_list": [launcher("l", package="firos", launch_file="core.py")]}
-    items = {i.name: rcmp_ms._mark_special(i) for i in rcmp_command.items_of_logic(logic)}
-    assert items["f"].special is rcmp_ms.SPECIAL_ITEMS[("firos", "core.py")]
-    assert items["d"].special is rcmp_ms.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]
+    items = {i.name: i for i in rcmp_service_item.items_of_logic(logic)}
+    assert items["f"].special is rcmp_service_item.SPECIAL_ITEMS[("firos", "core.py")]
+    assert items["d"].special is rcmp_service_item.SPECIAL_ITEMS[("rcm", "rcm_driver.py")]
     assert items["t"].special is None and items["l"].special is None   # only nodes are special
     items["f"].inbound_port, items["d"].driver_port = 10100, 9999
     firos, driver = items["f"].special, items["d"].special
@@ -570,6 +570,6 @@ def test_special_items_are_recognised_in_one_table():
 
 def test_items_are_built_from_validated_entries_only():
     with pytest.raises(rcmp_command.BadRequest, match=r"sn_list\[0\] lacks the required field 'sn_side'"):
-        rcmp_command.items_of_logic({"sn_list": [{"sn_name": "x", "sn_package": "p", "sn_type": "t"}]})
+        rcmp_service_item.items_of_logic({"sn_list": [{"sn_name": "x", "sn_package": "p", "sn_type": "t"}]})
     with pytest.raises(rcmp_command.BadRequest, match="cannot be split"):
-        rcmp_command.ServiceItem.from_entry(node("x", params="'unbalanced"), "robot1")
+        rcmp_service_item.ServiceItem.from_entry(node("x", params="'unbalanced"), "robot1")

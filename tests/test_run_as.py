@@ -103,9 +103,8 @@ def test_run_as_mistakes_stop_the_agent_with_one_line(procs, tmp_path, role, val
 
 @needs_root
 def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tmp_path):
-    from rcm_platform.rcmp_ms import RunAs
     from rcm_platform.rcmp_config import make_config
-    from rcm_platform.rcmp_node import WorkspaceOverlay, resolve_run_as
+    from rcm_platform.rcmp_service_item import RunAs, WorkspaceOverlay, resolve_run_as
     workspace = tmp_path / "rcmp_ws"
     workspace.mkdir()
     os.chown(workspace, NOBODY.pw_uid, NOBODY.pw_gid)

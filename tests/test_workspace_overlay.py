@@ -1,4 +1,4 @@
-"""rcmp_node's workspace overlay (issue 12 row 14): a catkin workspace's setup script runs as the workspace's owner,
+"""rcmp_service_item's workspace overlay (issue 12 row 14): a catkin workspace's setup script runs as the workspace's owner,
 never as root for somebody else's files, and its code paths reach only children that run as that owner unless
 the workspace is root's alone. The daemon side (rcmpd) is tested in tests/test_install_hosts.py."""
 
@@ -8,7 +8,7 @@ import tempfile
 
 import pytest
 
-from rcm_platform import rcmp_node
+from rcm_platform import rcmp_node, rcmp_service_item
 
 pytestmark = pytest.mark.skipif(os.geteuid() != 0, reason="changes file owners: needs root")
 
@@ -32,11 +32,11 @@ def workspace():
     os.makedirs(os.path.join(ws, "devel"))
     with open(os.path.join(ws, "devel", "setup.bash"), "w") as f:
         f.write(SETUP)
-    rcmp_node._overlays.clear()
+    rcmp_service_item._overlays.clear()
     try:
         yield ws
     finally:
-        rcmp_node._overlays.clear()
+        rcmp_service_item._overlays.clear()
         shutil.rmtree(base)
 
 
@@ -49,7 +49,7 @@ def chown_tree(path, uid):
 
 def test_a_users_workspace_runs_as_its_owner_and_lends_root_only_its_search_paths(workspace):
     chown_tree(workspace, NOBODY)
-    overlay = rcmp_node.workspace_overlay(workspace)
+    overlay = rcmp_service_item.workspace_overlay(workspace)
     with open(os.path.join(workspace, "devel", "ran-as")) as f:
         assert f.read().strip() == str(NOBODY)  # never as root
     assert (overlay.owner_uid, overlay.trusted) == (NOBODY, False)
@@ -63,12 +63,12 @@ def test_a_users_workspace_runs_as_its_owner_and_lends_root_only_its_search_path
     assert for_owner["PYTHONPATH"] == "/ws/devel/lib/python3/dist-packages"
     assert for_owner["LD_LIBRARY_PATH"] == "/ws/devel/lib"
     # the system's folders stay first: a workspace cannot shadow the tools a child is started with
-    assert for_owner["PATH"].split(":")[:4] == rcmp_node.SYSTEM_PATH.split(":")
+    assert for_owner["PATH"].split(":")[:4] == rcmp_service_item.SYSTEM_PATH.split(":")
     assert for_owner["PATH"].endswith("/ws/devel/bin")
 
 
 def test_a_root_only_workspace_is_trusted(workspace):
-    overlay = rcmp_node.workspace_overlay(workspace)
+    overlay = rcmp_service_item.workspace_overlay(workspace)
     with open(os.path.join(workspace, "devel", "ran-as")) as f:
         assert f.read().strip() == "0"
     assert overlay.trusted
@@ -77,22 +77,22 @@ def test_a_root_only_workspace_is_trusted(workspace):
 
 def test_a_root_owned_workspace_others_can_write_is_not_trusted(workspace):
     os.chmod(os.path.dirname(workspace), 0o777)  # anybody can swap the workspace folder
-    assert not rcmp_node.root_only(workspace)
-    assert not rcmp_node.workspace_overlay(workspace).trusted
+    assert not rcmp_service_item.root_only(workspace)
+    assert not rcmp_service_item.workspace_overlay(workspace).trusted
 
 
 def test_apply_workspace_fills_the_environment_and_survives_a_broken_script(workspace):
     environ = {"PATH": "/usr/bin", "RCMP_WS": workspace}
     chown_tree(workspace, NOBODY)
-    assert rcmp_node.apply_workspace(environ) is not None
+    assert rcmp_service_item.apply_workspace(environ) is not None
     assert environ["ROS_PACKAGE_PATH"] == "/ws/src:/usr/share" and "PYTHONPATH" not in environ
-    rcmp_node._overlays.clear()
+    rcmp_service_item._overlays.clear()
     with open(os.path.join(workspace, "devel", "setup.bash"), "w") as f:
         f.write("exit 7\n")
     environ = {"PATH": "/usr/bin", "RCMP_WS": workspace}
-    assert rcmp_node.apply_workspace(environ) is None
+    assert rcmp_service_item.apply_workspace(environ) is None
     assert environ == {"PATH": "/usr/bin", "RCMP_WS": workspace}
-    assert rcmp_node.apply_workspace({"PATH": "/usr/bin"}) is None  # no workspace: nothing changes
+    assert rcmp_service_item.apply_workspace({"PATH": "/usr/bin"}) is None  # no workspace: nothing changes
 
 
 def test_tighten_files_takes_others_off_old_logs_and_data(tmp_path):
