@@ -16,7 +16,8 @@ Also owns who may call it (CONTRACTS §10, docs/SECURITY.md):
 - CORS: any page may read; only the RDAPI's own origin and the (ext) ``allowed_origins`` may write (a POST with
   another ``Origin`` is 403, and preflights offer it GET only);
 - the listener: HTTP or, with (ext) ``rdapi_tls_cert`` / ``rdapi_tls_key``, HTTPS through Twisted's SSL endpoint;
-  at most ``max_connections`` connections (``max_per_address`` from one address), a 503 to the rest; idle
+  at most ``max_connections`` connections (``max_per_address`` from one address; counted by
+  ``rcmp_inter_communication.ConnectionCaps``, as the agent port's), a 503 to the rest; idle
   connections closed after ``idle_timeout`` and a request whose headers and body take longer than
   ``request_deadline`` dropped, so slow clients cannot hold it.
 """
@@ -32,6 +33,7 @@ from twisted.application import service
 from twisted.internet import defer, endpoints, protocol, task, threads
 from twisted.web import http, resource, server
 
+from .rcmp_inter_communication import ConnectionCaps
 from .rcmp_command import (BadRequest, CommandError, Forbidden, MethodNotAllowed, NotFound, TooLarge,
                            Unauthorized, UnsupportedMediaType)
 
@@ -565,25 +567,27 @@ class RdapiSite(server.Site):
     def __init__(self, resource, max_connections=MAX_CONNECTIONS, max_per_address=MAX_PER_ADDRESS,
                  idle_timeout=IDLE_TIMEOUT, request_deadline=REQUEST_DEADLINE, **kwargs):
         super().__init__(resource, timeout=idle_timeout, **kwargs)
-        self.max_connections = max_connections
-        self.max_per_address = max_per_address
+        self.caps = ConnectionCaps(max_connections, max_per_address)
         self.request_deadline = request_deadline
-        self.open_channels = {}       # channel -> source address
-        self.per_address = {}         # source address -> open connections
         self.refused = 0              # connections answered 503 for being over a cap
         self.slow_dropped = 0         # connections dropped by the request deadline
         self._warned = False
 
+    @property
+    def open_channels(self):
+        """The connections open now."""
+        return self.caps.open.keys()
+
     def buildProtocol(self, addr):
         host = getattr(addr, "host", "?")
-        if len(self.open_channels) >= self.max_connections:
-            return self._busy(f"the RDAPI has {self.max_connections} connections open; try again shortly")
-        if self.per_address.get(host, 0) >= self.max_per_address:
-            return self._busy(f"{self.max_per_address} RDAPI connections are already open from {host}; "
+        over = self.caps.over(host)
+        if over == "total":
+            return self._busy(f"the RDAPI has {self.caps.max_connections} connections open; try again shortly")
+        if over == "address":
+            return self._busy(f"{self.caps.max_per_address} RDAPI connections are already open from {host}; "
                               f"close some first")
         channel = super().buildProtocol(addr)
-        self.open_channels[channel] = host
-        self.per_address[host] = self.per_address.get(host, 0) + 1
+        self.caps.opened(channel, host)
         return channel
 
     def _busy(self, reason):
@@ -596,13 +600,7 @@ class RdapiSite(server.Site):
         return busy
 
     def channel_closed(self, channel):
-        host = self.open_channels.pop(channel, None)
-        if host is not None:
-            left = self.per_address.get(host, 1) - 1
-            if left > 0:
-                self.per_address[host] = left
-            else:
-                self.per_address.pop(host, None)
+        self.caps.closed(channel)
 
     def log(self, request):
         pass

@@ -16,7 +16,8 @@ Rules (``docs/PROTOCOL.md`` is the reference):
   an accepted hello): until then its frames are at most ``MAX_FRAME_BEFORE_ADMISSION`` bytes and it may send at
   most ``MAX_BYTES_BEFORE_ADMISSION`` bytes in all, so a stranger costs a few KB at most;
 - a listener holds at most ``max_connections`` connections, and at most ``max_per_address`` from one source
-  address; a connection over a cap is closed as soon as it is accepted, before anything is read;
+  address; a connection over a cap is closed as soon as it is accepted, before anything is read. The counting
+  is ``ConnectionCaps``, which the RDAPI's listener uses too;
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
@@ -324,6 +325,41 @@ class PeerFactory(protocol.Factory):
         return peer
 
 
+class ConnectionCaps:
+    """The caps of one listener on its open connections: in all (``max_connections``) and from one source address
+    (``max_per_address``). The agent port (``ListeningFactory``) and the RDAPI's listener
+    (``rcmp_ext_connector.RdapiSite``) both count their connections here; each words its own refusal."""
+
+    def __init__(self, max_connections, max_per_address):
+        self.max_connections = max_connections
+        self.max_per_address = max_per_address
+        self.open = {}               # connection -> its source address
+        self.per_address = {}        # source address -> connections open from it
+
+    def over(self, host):
+        """The cap a new connection from ``host`` would pass, ``"total"`` or ``"address"``; None when it may open."""
+        if len(self.open) >= self.max_connections:
+            return "total"
+        if self.per_address.get(host, 0) >= self.max_per_address:
+            return "address"
+        return None
+
+    def opened(self, connection, host):
+        self.open[connection] = host
+        self.per_address[host] = self.per_address.get(host, 0) + 1
+
+    def closed(self, connection):
+        """``connection`` is gone (no effect for one that was never counted, or already was)."""
+        host = self.open.pop(connection, None)
+        if host is None:
+            return
+        left = self.per_address.get(host, 1) - 1
+        if left > 0:
+            self.per_address[host] = left
+        else:
+            self.per_address.pop(host, None)
+
+
 def default_max_connections():
     """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), 64 to 4096."""
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
@@ -347,10 +383,7 @@ class ListeningFactory(PeerFactory):
 
     def __init__(self, handler, reactor, max_connections=None, max_per_address=None):
         super().__init__(handler, reactor)
-        self.max_connections = max_connections or default_max_connections()
-        self.max_per_address = max_per_address or MAX_PER_ADDRESS
-        self.peers = set()
-        self.per_address = {}        # source address -> connections open
+        self.caps = ConnectionCaps(max_connections or default_max_connections(), max_per_address or MAX_PER_ADDRESS)
         self.refused = 0             # connections refused since the last log line
         self.refused_total = 0
         self._logged_at = None
@@ -358,30 +391,30 @@ class ListeningFactory(PeerFactory):
         self._warned = 0
         self.warnings_left_out = 0
 
+    @property
+    def peers(self):
+        """The connections open now."""
+        return self.caps.open.keys()
+
     def buildProtocol(self, addr):
         host = getattr(addr, "host", "?")
-        if len(self.peers) >= self.max_connections:
-            self._refuse(f"{len(self.peers)} connections open, the cap is {self.max_connections}", host)
+        caps = self.caps
+        over = caps.over(host)
+        if over == "total":
+            self._refuse(f"{len(caps.open)} connections open, the cap is {caps.max_connections}", host)
             return None
-        if self.per_address.get(host, 0) >= self.max_per_address:
-            self._refuse(f"{self.per_address[host]} connections open from {host}, the cap per address is "
-                         f"{self.max_per_address}", host)
+        if over == "address":
+            self._refuse(f"{caps.per_address[host]} connections open from {host}, the cap per address is "
+                         f"{caps.max_per_address}", host)
             return None
         peer = Peer(self.handler, self.reactor, admitted=False)
         peer.factory = self
         peer.host = host
-        self.peers.add(peer)
-        self.per_address[host] = self.per_address.get(host, 0) + 1
+        caps.opened(peer, host)
         return peer
 
     def peer_gone(self, peer):
-        if peer in self.peers:
-            self.peers.discard(peer)
-            left = self.per_address.get(peer.host, 1) - 1
-            if left > 0:
-                self.per_address[peer.host] = left
-            else:
-                self.per_address.pop(peer.host, None)
+        self.caps.closed(peer)
 
     def warn_limited(self, message, *args):
         now = self.reactor.seconds()
@@ -417,7 +450,7 @@ def listen(reactor, address, port, handler, max_connections=None, max_per_addres
     factory = ListeningFactory(handler, reactor, max_connections, max_per_address)
     # a fleet arriving at once (a master restarted under its robots) must not overflow the accept queue: a
     # dropped SYN is retried by the robot's kernel only after a second or more
-    return reactor.listenTCP(port, factory, backlog=min(factory.max_connections, LISTEN_BACKLOG),
+    return reactor.listenTCP(port, factory, backlog=min(factory.caps.max_connections, LISTEN_BACKLOG),
                              interface=address)
 
 
