@@ -58,8 +58,6 @@ WATCH_HISTORY = 300      # samples kept per topic for a page that starts watchin
 WATCH_GRACE = 10.0       # seconds a watcher lives on after the last page stopped watching
 MAX_LINE = 64 * 1024     # bytes of one line from a watcher
 MAX_TEXT = 2000          # characters of a message shown as text
-POSE_TYPES = ("geometry_msgs/Pose2D", "geometry_msgs/Pose", "geometry_msgs/PoseStamped", "nav_msgs/Odometry",
-              "geometry_msgs/PoseWithCovarianceStamped", "geometry_msgs/Point", "geometry_msgs/PointStamped")
 
 
 def sse(event, payload):

@@ -4,7 +4,7 @@ Owns: the table of ops (who serves each, required fields and their types) and th
 side (hello → accepted / refused against the robotics data, one session per connected robot, heartbeats, the
 service space created on connection through the ``ServiceSpaceManager`` and torn down when the robot goes,
 ``disconnect`` for the RDAPI's r_provisioning) and the robot's side (wait for the platform address, hello with
-backoff, serve ``start_items``/``stop_items`` with the ``RobotSideRunner``, report item exits, stop its
+backoff, serve ``start_items``/``stop_items`` with the ``ItemRunner``, report item exits, stop its
 robot-side items and say hello again when the master is lost). The wire format is ``rcmp_inter_communication``'s;
 ``docs/PROTOCOL.md`` documents every op.
 
@@ -136,8 +136,9 @@ def _address_function(config, address):
 # ------------------------------------------------------------------------------------------------------------
 # master side
 
-class RobotSession:
-    """One connected robot as seen by the master; the ``RemoteRobot`` given to the ServiceSpaceManager.
+class AgentSession:
+    """One connected agent as the master sees it: a robot (``robot`` true; ``MasterAgent.sessions``) or a server
+    VM (``MasterAgent.servers``); the ``rcmp_ms.RemoteAgent`` the ServiceSpaceManager starts items through.
 
     ``address`` is the connection's source address, never what the hello body claims.
     """
@@ -153,7 +154,7 @@ class RobotSession:
             agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
             send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
             last_heard=lambda: peer.last_heard, on_gone=self._gone,
-            name=f"{'robot' if robot else 'server'} {name}")
+            name=f"{self.what} {name}")
 
     def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
         return self.peer.request("start_items", {
@@ -176,7 +177,12 @@ class RobotSession:
         self.peer.abort(f"no heartbeat for {silent:.1f} s")
 
     def __repr__(self):
-        return f"<{'RobotSession' if self.robot else 'ServerSession'} {self.name} at {self.address}>"
+        return f"<AgentSession {self.what} {self.name} at {self.address}>"
+
+    @property
+    def what(self):
+        """``robot`` or ``server``, for sentences."""
+        return "robot" if self.robot else "server"
 
 
 class MasterAgent(service.Service):
@@ -210,7 +216,7 @@ class MasterAgent(service.Service):
         spaces.on_state = self._on_state
         self.spaces = spaces
         self._platform_address = _address_function(config, address)
-        self.sessions = {}           # robot name -> RobotSession
+        self.sessions = {}           # robot name -> AgentSession
         self.servers = {}            # server VM name -> its session (robot false): it hosts service spaces
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
         self._write = _OrderedWrites()
@@ -340,9 +346,6 @@ class MasterAgent(service.Service):
             return session is not None
         return self._locked(pi_name, work)
 
-    def connected_robots(self):
-        return sorted(self.sessions)
-
     def server_rows(self):
         """``platform_instance/read?pi_type=S``: the master and the connected server VMs (CONTRACTS §8)."""
         return self.spaces.server_rows(self.address)
@@ -373,12 +376,12 @@ class MasterAgent(service.Service):
             hosts = (session.robot and body["ss_name"] == session.name) or (
                 not session.robot and body["ss_name"] in self.spaces.spaces_of(session.name))
             if not hosts:
-                raise ic.Refused(f"{'robot' if session.robot else 'server'} {session.name} cannot report items "
+                raise ic.Refused(f"{session.what} {session.name} cannot report items "
                                  f"of service space {body['ss_name']!r}", code="bad_request")
             self.spaces.item_exited(body["ss_name"], body["report"])
             return {}
         if op == "bye":
-            log.info("robot %s is leaving: %s", session.name, _short(body["reason"]))
+            log.info("%s %s is leaving: %s", session.what, session.name, _short(body["reason"]))
             peer.info["said_bye"] = True
             self.reactor.callLater(0, peer.close, f"robot said bye: {_short(body['reason'])}")
             return {}
@@ -405,11 +408,10 @@ class MasterAgent(service.Service):
         session = peer.info.get("session")
         if session is None or session.ended:
             return
-        what = "robot" if session.robot else "server"
         if peer.info.get("said_bye"):
-            log.info("%s %s left: %s", what, session.name, why)
+            log.info("%s %s left: %s", session.what, session.name, why)
         else:
-            log.warning("lost %s %s: %s", what, session.name, why)
+            log.warning("lost %s %s: %s", session.what, session.name, why)
         end = self._end_session if session.robot else self._end_server
         self._locked(session.name, end, session, f"connection lost: {why}")
 
@@ -482,6 +484,28 @@ class MasterAgent(service.Service):
         self.reactor.callLater(0, peer.close, "hello refused")
 
     @defer.inlineCallbacks
+    def _take_over(self, old, peer, end):
+        """The takeover rule (CONTRACTS §10), for robots and server VMs alike: a hello for a name whose session
+        ``old`` is alive (heard from within the heartbeat window, its connection open) is refused (``in_use``)
+        unless it comes from that session's own source address (a restarted agent). Otherwise the old session is
+        ended (``end``: ``_end_session`` or ``_end_server``) before the new one opens. Call under the name's lock."""
+        if old is None or old.ended:
+            return
+        silent = self.reactor.seconds() - (old.peer.last_heard or 0)
+        if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
+            self._log_refusal("refused hello for %s from %s: its session from %s is alive (heard %.1f s ago)",
+                              old.name, peer.remote, old.address, silent)
+            raise ic.Refused(f"{old.what} {old.name!r} has a live session from {old.address} (heard {silent:.1f} s "
+                             f"ago); a hello from {peer.host} cannot take it over", code="in_use")
+        log.info("%s %s said hello again from %s: replacing its session from %s", old.what, old.name, peer.host,
+                 old.address)
+        # an agent says hello on a new connection only once it gave up the old one (and stopped its items):
+        # drop the old connection first, so the teardown does not wait for answers that cannot come
+        why = f"replaced by a new hello from the {old.what}"
+        old.peer.abort(why)
+        yield end(old, why)
+
+    @defer.inlineCallbacks
     def _admit(self, peer, name, robot):
         """Under ``name``'s lock: its provisioning, the takeover rule, then the new session; the provisioning row
         (None when the connection closed meanwhile)."""
@@ -490,23 +514,10 @@ class MasterAgent(service.Service):
             self._log_refusal("refused hello from %s (%s): not provisioned", name, peer.remote)
             raise ic.Refused(f"robot {name!r} is not provisioned on this platform; provision it with "
                              f"platform_instance/provisioning", code="not_provisioned")
-        old = self.sessions.get(name)
-        if old is not None and not old.ended:
-            silent = self.reactor.seconds() - (old.peer.last_heard or 0)
-            if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
-                self._log_refusal("refused hello for %s from %s: its session from %s is alive (heard %.1f s "
-                                  "ago)", name, peer.remote, old.address, silent)
-                raise ic.Refused(f"robot {name!r} has a live session from {old.address} (heard {silent:.1f} s "
-                                 f"ago); a hello from {peer.host} cannot take it over", code="in_use")
-            log.info("robot %s said hello again from %s: replacing its session from %s", name, peer.host,
-                     old.address)
-            # a robot says hello on a new connection only once it gave up the old one (and stopped its items):
-            # drop the old connection first, so the teardown does not wait for answers that cannot come
-            old.peer.abort("replaced by a new hello from the robot")
-            yield self._end_session(old, "replaced by a new hello from the robot")
+        yield self._take_over(self.sessions.get(name), peer, self._end_session)
         if peer.closed:
             return None
-        session = RobotSession(self, peer, name, peer.host, robot)
+        session = AgentSession(self, peer, name, peer.host, robot)
         peer.admit()
         peer.info["session"] = session
         self.sessions[name] = session
@@ -529,17 +540,10 @@ class MasterAgent(service.Service):
             self._log_refusal("refused hello from server %s (%s): a robot has that name", name, peer.remote)
             raise ic.Refused(f"{name!r} is provisioned as a robot; give the server VM another name",
                              code="name_taken")
-        old = self.servers.get(name)
-        if old is not None and not old.ended:
-            silent = self.reactor.seconds() - (old.peer.last_heard or 0)
-            if old.address != peer.host and not old.peer.closed and silent < old.watchdog.limit:
-                raise ic.Refused(f"server {name!r} has a live session from {old.address}; a hello from "
-                                 f"{peer.host} cannot take it over", code="in_use")
-            old.peer.abort("replaced by a new hello from the server")
-            yield self._end_server(old, "replaced by a new hello from the server")
+        yield self._take_over(self.servers.get(name), peer, self._end_server)
         if peer.closed:
             return None
-        session = RobotSession(self, peer, name, peer.host, False)
+        session = AgentSession(self, peer, name, peer.host, False)
         session.capacity = MAX_SERVICE_SPACES if capacity is None else capacity
         peer.admit()
         peer.info["session"] = session
@@ -654,7 +658,7 @@ class MasterAgent(service.Service):
 class RobotAgent(service.Service):
     """A robot's (or server VM's) agent: hello to the master, robot-side items on its request, heartbeats.
 
-    ``runner`` is the ``rcmp_ms.RobotSideRunner`` (the agent sets its ``on_item_exited``); ``address()`` gives
+    ``runner`` is the ``rcmp_ms.ItemRunner`` (the agent sets its ``on_item_exited``); ``address()`` gives
     the platform address (None while the VPN has none). ``rcmp_node`` builds them and passes them in.
     """
 
@@ -837,7 +841,7 @@ class RobotAgent(service.Service):
         return tails
 
     def _item_exited(self, ss_name, report):
-        """RobotSideRunner callback: an R item of ``ss_name`` exited; tell the master."""
+        """ItemRunner callback: an R item of ``ss_name`` exited; tell the master."""
         peer = self.peer
         if peer is None or peer.closed or not self.accepted:
             return

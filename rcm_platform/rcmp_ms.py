@@ -1,32 +1,40 @@
 """Managed services: the service-space runtime of an agent, on top of its process table (``rcmp_process``).
 
-See docs/SERVICE_SPACES.md:
+See docs/SERVICE_SPACES.md. Owns:
 
 * ``ServiceSpace``: one robot's running context on this agent. It has one state from a closed set
   (``creating``, ``paired``, ``unpaired``, ``stopping``, ``gone``) and changes state only through
-  ``ServiceSpace.transition``, which checks the allowed source states, as ``ManagedProcess`` does.
-* ``ServiceSpaceManager`` (master or server side): per connected robot a ``ServiceSpace``: a ROS master
+  ``ServiceSpace.transition``, checked as a process's transitions are (``rcmp_process.check_transition``).
+* the start sequence, written once (``_SpaceHost._bring_up``) and run by both sides: the space's ROS master
   (``rosmaster --core`` plus ``rosout``, measured leaner and faster than ``roscore``) on a free port from
-  ``config.ros_port_base`` upward, then, once that master answers (as roslaunch does: a rospy node given
-  private params, ``_x:=1``, sets them on its master first thing and dies if none answers), the S-side items
-  and the R-side items through a ``RemoteRobot``, all at once; nodes run as one exec each
-  (``rcmp_command.NodeExecutables``), not through rosrun; ``paired`` when the ROS
-  master answers and every item has started: its node(s) registered with the space's master (a launcher:
-  every node it launches), or, for a node that never registers under its name, it stayed up for the settle
-  time. rosout is watched but not waited for (it only collects logs).
-* ``SPECIAL_ITEMS``: the one table of the nodes treated specially, with their hooks (``SpecialItem``):
-  FIROS gets one of the inbound open ports (``-P``); rcm_driver gets a free local ``port=N`` and is told
-  ``r_connection`` / ``r_disconnection`` over a ``rcmp_inter_communication.DriverLink`` kept open.
-* ``RobotSideRunner`` (robot side): starts and stops the R-side items (and the ROS master when the service
-  logic's ``ss_side`` is ``R``) for the master, and reports items that die later.
-* ``RemoteRobot``: the protocol the master's agent layer implements over the network, one per robot.
+  ``config.ros_port_base`` upward, here or by the remote agent that hosts it; once that master answers (as
+  roslaunch does: a rospy node given private params, ``_x:=1``, sets them on its master first thing and dies
+  if none answers) every part's items at once, here and through ``RemoteAgent``s; the special items'
+  ``started`` hooks; then the space settles: ``paired`` when the ROS master answers and every item has started
+  (its node(s) registered with the space's master, a launcher's every node; a node that never registers under
+  its name stayed up for the settle time). rosout is watched but not waited for (it only collects logs).
+* ``ServiceSpaceManager`` (the master): per connected robot a ``ServiceSpace``, placed on a server (``Server``,
+  ``choose_server``: the master or a server VM, CONTRACTS §8), moved when its server goes, torn down when its
+  robot goes; ``item_exited`` reports from the robots; ``observers`` (the console).
+* ``ItemRunner`` (a robot, or a server VM): what the master asks this agent to run of a space (a robot's R
+  items, and the ROS master for ``ss_side`` R; a server VM's ROS master, from its own ``ros_port_base``, and
+  S items), and reports items that die later.
+* ``RemoteAgent``: the protocol the master's agent layer implements over the network, one per robot or server.
+* the special items' side of the runtime: the ports they take (``take_inbound_port``, ``choose_driver_port``)
+  and rcm_driver's connection (``connect_driver``, ``say_goodbye_to_driver``: ``r_connection`` /
+  ``r_disconnection`` over a ``rcmp_inter_communication.DriverLink`` kept open), which their hooks call.
 * ``poll_until``: every "try again until a deadline" of the runtime (a ROS master answering, nodes
   registering, rcm_driver accepting) is this one helper.
 
-What a service item is and how its command line and environment are built is ``rcmp_command``'s
-(``ServiceItem``, ``node_argv``, ``launcher_argv``, ``child_env``); ``rcmp_service_command.describe`` renders a
-space for ``service_space/read``. This module imports neither ``rcmp_event`` nor ``rcmp_node``: ``rcmp_node``
-builds the runtime and hands it (and the function giving the platform address) to the agents.
+What a service item is and how it becomes a process (command line, environment, user, special items) is
+``rcmp_service_item``'s; ``rcmp_service_command.describe`` renders a space for ``service_space/read``. This module
+imports neither ``rcmp_event`` nor ``rcmp_node``: ``rcmp_node`` builds the runtime and hands it (and the function
+giving the platform address) to the agents.
+
+About 1,070 lines, more than the 900 or so of the other modules, because it is one runtime that both sides run:
+the master's manager and the ``ItemRunner`` share the start sequence, the ROS master, the items' start and
+registration, the special items' ports and rcm_driver link, and the stopping (``_SpaceHost``); the parts that
+were jobs of their own have left it (the process table: ``rcmp_process``; what an item is: ``rcmp_service_item``).
 """
 
 import collections
@@ -41,7 +49,7 @@ from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform.rcmp_command import CommandError
-from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, InvalidTransition
+from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, check_transition
 from rcm_platform.rcmp_service_item import (NodeExecutables, ServiceItem, child_env, graph_name, items_of_logic,
                                             launcher_nodes, launcher_nodes_as)
 
@@ -98,6 +106,14 @@ def _tcp_port_free(port, host=""):
             return False
 
 
+HERE = object()   # this agent, as a place where a part of a service space runs (beside its RemoteAgents)
+
+
+def _items_on(parts, host):
+    """The items of ``parts`` (``[(host, items)]``) that run on ``host``."""
+    return [item for where, items in parts if where is host for item in items]
+
+
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
 
@@ -141,7 +157,7 @@ class ServiceSpace:
         self.robot = None
         self.logic = None           # master side: the service logic it was built from (to rebuild it elsewhere)
         self.server = None          # master side: the name of the server hosting its S side (and ROS master)
-        self.host = None            # master side: that server's RemoteRobot, None when it is this agent
+        self.host = None            # master side: that server's RemoteAgent, None when it is this agent
         self.public_ip = None       # master side: the hosting server's address for service_space/read
         self.driver_link = None
         self.driver_events = []
@@ -154,11 +170,8 @@ class ServiceSpace:
 
     def transition(self, new, why):
         """The only way the space changes state; InvalidTransition for a change the set does not allow."""
-        if new not in SPACE_STATES:
-            raise InvalidTransition(f"service space {self.name}: unknown state {new!r}")
         old = self.state
-        if old not in _SPACE_SOURCES.get(new, ()):   # nothing goes back to creating
-            raise InvalidTransition(f"service space {self.name}: {old} -> {new} is not allowed")
+        check_transition(f"service space {self.name}", old, new, SPACE_STATES, _SPACE_SOURCES)  # never to creating
         self.state = new
         log.debug("service space %s: %s -> %s (%s)", self.name, old, new, why)
 
@@ -207,23 +220,26 @@ class ServiceSpace:
         return self.state
 
 
-class RemoteRobot(Protocol):
-    """A connected robot as the master sees it (implemented by rcmp_event over the network)."""
+class RemoteAgent(Protocol):
+    """A connected robot or server VM as the master sees it (``rcmp_event.AgentSession``, over the network): the
+    space's R items run on a robot; a server VM hosts a space's ROS master and S items."""
 
     name: str
     address: str
 
     def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
-        """Deferred({"ros_master_uri": str, "items": [item report, ...]}) once the robot's items settled."""
+        """Deferred({"ros_master_uri": str, "items": [item report, ...]}) once the agent's items settled."""
 
     def stop_items(self, ss_name):
-        """Deferred fired when the robot stopped every item (and ROS master) of the space."""
+        """Deferred fired when the agent stopped every item (and ROS master) of the space."""
 
 
 # ---------------------------------------------------------------------------------------------------------
-# The runtime shared by both sides: start a ROS master, start local items, stop a space.
+# The runtime shared by both sides: the start sequence, the ROS master, local items, stopping a space.
 
 class _SpaceHost:
+    """What the master's ``ServiceSpaceManager`` and a robot's or server VM's ``ItemRunner`` share."""
+
     master_timeout = 20.0        # seconds for a new ROS master to answer
     driver_timeout = 20.0        # seconds for rcm_driver's port to accept
     driver_goodbye_timeout = 3.0 # seconds to wait for e_removed after r_disconnection (with FIROS)
@@ -246,7 +262,7 @@ class _SpaceHost:
         self.run_as = run_as
         self._address = address
         self.spaces = {}
-        self.executables = NodeExecutables()   # nodes run as one exec, not through rosrun (rcmp_command)
+        self.executables = NodeExecutables()   # nodes run as one exec, not through rosrun (rcmp_service_item)
         self.ros_log_dir = os.path.join(table.log_dir, "ros")
 
     @property
@@ -413,6 +429,86 @@ class _SpaceHost:
         if new == FAILED and not space.cancelled:
             space.reason = f"the space's {managed.key.rsplit('/', 1)[-1]} {managed.error}"
             self._pairing_may_have_changed(space)
+
+    # -- the start sequence -----------------------------------------------------------------------------------
+    @defer.inlineCallbacks
+    def _bring_up(self, space, parts, master_on=None, master_port=None):
+        """The start sequence of a service space, the one both sides run:
+
+        1. its ROS master: started here on a free port from ``master_port`` upward (``master_on`` is ``HERE``),
+           or by the remote agent ``master_on`` together with that agent's part, or none (the URI is known);
+        2. once it answers (rospy nodes given private params need an answering master at once), every other
+           part at once: the items here (``HERE``) and each remote agent's (robots, the server hosting the space);
+        3. the special items' ``started`` hooks (rcm_driver: r_connection);
+        4. the ROS master and rosout checked; then the space settles: paired or not.
+
+        ``parts``: ``[(HERE or a RemoteAgent, [ServiceItem])]``; a remote part without items is skipped unless its
+        agent starts the master (then it is that agent's whole part). A SpaceError, also from one of the parts started together, ends the sequence and
+        becomes ``space.reason``; it is also what the Deferred fires with (None when there was none). Any other
+        error propagates and the space is not settled.
+        """
+        try:
+            if master_on is HERE or any(host is HERE for host, _ in parts):
+                space.address = self.address   # what the children here advertise
+            if master_on is HERE:
+                self._spawn_master(space, master_port)
+                yield self._master_ready(space)
+            elif master_on is not None:
+                yield self._start_part(space, master_on, _items_on(parts, master_on), master_port)
+            if not space.cancelled:
+                if not space.ros_master_uri:
+                    raise SpaceError("no ROS master URI given and none started")
+                yield defer.gatherResults([self._start_part(space, host, items) for host, items in parts
+                                           if host is HERE or (items and host is not master_on)],
+                                          consumeErrors=True)
+            if not space.cancelled:
+                yield self._items_started(space)
+            yield self._core_settled(space)
+            problem = None
+        except SpaceError as exc:
+            problem = space.reason = str(exc)
+        except defer.FirstError as exc:
+            if not exc.subFailure.check(SpaceError):
+                exc.subFailure.raiseException()
+            problem = space.reason = str(exc.subFailure.value)
+        space.settle()
+        return problem
+
+    def _start_part(self, space, host, items, master_port=None):
+        """Start ``items`` here (``host`` is ``HERE``) or on the remote agent ``host`` (which also starts the space's
+        ROS master when given ``master_port``)."""
+        if host is HERE:
+            return self._start_local_items(space, items)
+        return self._start_remote(space, host, items, master_port)
+
+    @defer.inlineCallbacks
+    def _start_remote(self, space, agent, remote, start_ros_master_port):
+        """Start ``remote`` items on ``agent`` (the space's robot, or the server hosting the space; with
+        ``start_ros_master_port`` it starts the space's ROS master too)."""
+        who = getattr(agent, "name", space.name)
+        what = "robot" if agent is space.robot else "server"
+        try:
+            result = yield agent.start_items(space.name, space.ros_master_uri, [i.to_dict() for i in remote],
+                                             start_ros_master_port=start_ros_master_port)
+        except Exception as exc:
+            raise SpaceError(f"{what} {who} could not start its items: {exc}")
+        if space.cancelled:
+            return
+        if result.get("reason"):
+            raise SpaceError(f"{what} {who}: {result['reason']}")
+        if start_ros_master_port is not None:
+            space.ros_master_uri = result.get("ros_master_uri")
+            if not space.ros_master_uri:
+                raise SpaceError(f"{what} {who} did not start the ROS master")
+        if result.get("inbound_port"):
+            space.inbound_port = result["inbound_port"]
+        reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
+        for item in remote:
+            item.remote = reports.get((item.kind, item.name)) or {
+                **item.report(), "state": FAILED, "error": f"the {what} did not report this item"}
+            item.remote.setdefault("i_name", item.i_name)
+            item.nodes = list(item.remote.get("nodes") or [])
+            item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
 
     # -- local items ----------------------------------------------------------------------------------------
     @defer.inlineCallbacks
@@ -585,7 +681,7 @@ class _SpaceHost:
 
 class Server:
     """A place for service spaces (CONTRACTS §8): the master itself (``host`` None) or a connected server VM
-    (``host``: its ``RemoteRobot``, which starts the space's ROS master and S items there)."""
+    (``host``: its ``RemoteAgent``, which starts the space's ROS master and S items there)."""
 
     def __init__(self, name, capacity, address, host=None):
         self.name = name
@@ -758,78 +854,25 @@ class ServiceSpaceManager(_SpaceHost):
         self._changed(space)
         log.info("service space %s: creating on %s (%d S items, %d R items, ROS master on the %s side)", pi_name,
                  server.name, len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
+        here_or_server = HERE if server.host is None else server.host   # where the S side runs
+        local = [i for i in items if i.side == "S"]
+        if ss_side == "S":   # the ROS master where the S side runs; on a server VM, from its own ros_port_base
+            parts, master_on = [(here_or_server, local), (robot, remote)], here_or_server
+        else:                # the ROS master on the robot, the S items here once it answers
+            parts, master_on = [(robot, remote), (HERE, local)], robot
         try:
-            base = self.config.ros_port_base
-            local = [i for i in items if i.side == "S"]
-            if ss_side == "S" and space.host is not None:
-                # the server starts the ROS master (from its own ros_port_base) and the S items; then the robot
-                yield self._start_remote(space, space.host, local, base)
-                if remote and not space.cancelled and space.ros_master_uri:
-                    yield self._start_remote(space, robot, remote, None)
-            elif ss_side == "S":
-                space.address = self.address
-                self._spawn_master(space, base)
-                yield self._master_ready(space)   # items start once it answers (module docstring)
-                if not space.cancelled:
-                    work = [self._start_local_items(space, local)]
-                    if remote:
-                        work.append(self._start_remote(space, robot, remote, None))
-                    yield defer.gatherResults(work, consumeErrors=True)
-            else:
-                space.address = self.address
-                yield self._start_remote(space, robot, remote, base)
-                if not space.cancelled and space.ros_master_uri:
-                    yield self._start_local_items(space, local)
-            if not space.cancelled:
-                yield self._items_started(space)
-            yield self._core_settled(space)
-        except SpaceError as exc:
-            space.reason = str(exc)
-        except defer.FirstError as exc:
-            inner = exc.subFailure.value
-            space.reason = str(inner) if isinstance(inner, SpaceError) else f"unexpected error: {inner!r}"
-            if not isinstance(inner, SpaceError):
-                log.error("service space %s: %s", pi_name, exc.subFailure.getTraceback())
+            yield self._bring_up(space, parts, master_on, self.config.ros_port_base)
         except Exception as exc:  # a bug: keep the space visible (and stoppable) with the reason
             space.reason = f"unexpected error: {exc!r}"
             log.exception("service space %s: unexpected error while creating", pi_name)
-        if not space.cancelled:
             space.settle()
+        if not space.cancelled:
             if space.paired:
                 self._notify(space)
             level = logging.INFO if space.paired else logging.WARNING
             log.log(level, "service space %s: %s", pi_name,
                     "paired" if space.paired else f"not paired: {space.why_unpaired()}")
         return space
-
-    @defer.inlineCallbacks
-    def _start_remote(self, space, robot, remote, start_ros_master_port):
-        """Start ``remote`` items on ``robot`` (a robot, or the server hosting the space; with
-        ``start_ros_master_port`` it starts the space's ROS master too)."""
-        who = getattr(robot, "name", space.name)
-        what = "robot" if robot is space.robot else "server"
-        try:
-            result = yield robot.start_items(space.name, space.ros_master_uri, [i.to_dict() for i in remote],
-                                             start_ros_master_port=start_ros_master_port)
-        except Exception as exc:
-            raise SpaceError(f"{what} {who} could not start its items: {exc}")
-        if space.cancelled:
-            return
-        if result.get("reason"):
-            raise SpaceError(f"{what} {who}: {result['reason']}")
-        if start_ros_master_port is not None:
-            space.ros_master_uri = result.get("ros_master_uri")
-            if not space.ros_master_uri:
-                raise SpaceError(f"{what} {who} did not start the ROS master")
-        if result.get("inbound_port"):
-            space.inbound_port = result["inbound_port"]
-        reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
-        for item in remote:
-            item.remote = reports.get((item.kind, item.name)) or {
-                **item.report(), "state": FAILED, "error": f"the {what} did not report this item"}
-            item.remote.setdefault("i_name", item.i_name)
-            item.nodes = list(item.remote.get("nodes") or [])
-            item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
 
     # -- pairing --------------------------------------------------------------------------------------------
     def _changed(self, space):
@@ -947,12 +990,13 @@ class ServiceSpaceManager(_SpaceHost):
 
 
 # ---------------------------------------------------------------------------------------------------------
-# Robot side.
+# A robot's or a server VM's side.
 
-class RobotSideRunner(_SpaceHost):
-    """The robot's part of its service spaces: R items (and the ROS master for ``ss_side`` R); on a server VM
-    (``config.role`` "server"), the S side of the spaces the master placed there: their ROS master, started from
-    the server's own ``ros_port_base``, and S items (FIROS takes the server's ``inbound_open_ports``)."""
+class ItemRunner(_SpaceHost):
+    """What the master asks this agent to run of its service spaces: on a robot, the R items (and the ROS master for
+    ``ss_side`` R); on a server VM (``config.role`` "server"), the S side of the spaces the master placed there:
+    their ROS master, started from the server's own ``ros_port_base``, and S items (FIROS takes the server's
+    ``inbound_open_ports``). Items that die later are told to ``on_item_exited``."""
 
     key_prefix = "robot"
 
@@ -979,24 +1023,12 @@ class RobotSideRunner(_SpaceHost):
         space.items = parsed
         space.ros_master_uri = ros_master_uri
         self.spaces[ss_name] = space
-        try:
-            space.address = self.address
-            if start_ros_master_port:
-                self._spawn_master(space, int(start_ros_master_port))
-                yield self._master_ready(space)   # items start once it answers, as on the master
-            if not space.ros_master_uri:
-                raise SpaceError("no ROS master URI given and none started")
-            if not space.cancelled:
-                yield self._start_local_items(space, parsed)
-            if not space.cancelled:
-                yield self._items_started(space)
-            yield self._core_settled(space)
-        except SpaceError as exc:
-            space.reason = str(exc)
+        master_port = int(start_ros_master_port) if start_ros_master_port else None
+        problem = yield self._bring_up(space, [(HERE, parsed)], HERE if master_port else None, master_port)
+        if problem:
             for item in parsed:
                 if item.process is None and item.error is None:
-                    item.fail(str(exc))
-        space.settle()
+                    item.fail(problem)
         space.told.update((i.kind, i.name) for i in parsed if i.state == FAILED)
         return {"ros_master_uri": space.ros_master_uri, "items": [i.report() for i in parsed],
                 "reason": space.reason, "inbound_port": space.inbound_port}

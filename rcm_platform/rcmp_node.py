@@ -168,7 +168,7 @@ def build_robot(config, reactor, table=None):
     top = _top_service(config, reactor, table)
     table = top.table
     address = functools.partial(platform_address, config)
-    runner = rcmp_ms.RobotSideRunner(reactor, table, config, address=address, run_as=run_as)
+    runner = rcmp_ms.ItemRunner(reactor, table, config, address=address, run_as=run_as)
     agent = rcmp_event.RobotAgent(config, table, reactor, runner=runner, address=address)
     agent.setServiceParent(top)
     return top

@@ -105,6 +105,16 @@ class InvalidTransition(RuntimeError):
     """A state change that the closed state machine does not allow (a bug in the caller)."""
 
 
+def check_transition(what, old, new, states, sources):
+    """Raise InvalidTransition unless ``new`` is one of ``states`` and ``old`` one of the states it may follow
+    (``sources``: target -> allowed sources; a state that is no key is never a target). The check of every closed
+    state machine here: a child's and (``rcmp_ms``) a service space's."""
+    if new not in states:
+        raise InvalidTransition(f"{what}: unknown state {new!r}")
+    if old not in sources.get(new, ()):
+        raise InvalidTransition(f"{what}: {old} -> {new} is not allowed")
+
+
 # ---------------------------------------------------------------------------------------------------------
 # OS effects, behind one facade.
 
@@ -345,11 +355,8 @@ class ManagedProcess:
 
     # -- state machine ------------------------------------------------------------------------------------
     def _transition(self, new, why):
-        if new not in STATES:
-            raise InvalidTransition(f"{self.key}: unknown state {new!r}")
         old = self.state
-        if old not in _ALLOWED_SOURCES[new]:
-            raise InvalidTransition(f"{self.key}: {old} -> {new} is not allowed")
+        check_transition(self.key, old, new, STATES, _ALLOWED_SOURCES)
         self.state = new
         level = logging.WARNING if new == FAILED else logging.INFO
         log.log(level, "process %s (pid %s): %s -> %s (%s)", self.key, self.pid, old, new, why)

@@ -110,7 +110,7 @@ class Spaces:
 
 
 class Runner:
-    """A RobotSideRunner stand-in."""
+    """An ItemRunner stand-in."""
 
     def __init__(self):
         self.on_item_exited = None
@@ -185,7 +185,7 @@ class AgentTests(unittest.TestCase):
         self.assertEqual(runner.started, [("robot1", "http://127.0.0.1:11999/", 1)])
         self.assertIn(("space", "robot1", "http://127.0.0.1:11999/", None), self.data.events)
         self.assertEqual(self.data.events[-1], ("paired", "robot1", True))
-        self.assertEqual(self.master.connected_robots(), ["robot1"])
+        self.assertEqual(sorted(self.master.sessions), ["robot1"])
         self.assertEqual(agent.peer.transport.getHost().host, "127.0.0.2")   # bound to its platform address
 
     @defer.inlineCallbacks
@@ -209,7 +209,7 @@ class AgentTests(unittest.TestCase):
         yield until(lambda: "disconnected" in self.data.names("robot1"))
         self.assertEqual(self.spaces.torn_down, ["robot1"])
         self.assertEqual(self.data.names("robot1")[-1], "disconnected")
-        self.assertEqual(self.master.connected_robots(), [])
+        self.assertEqual(sorted(self.master.sessions), [])
         self.assertEqual(runner.stop_all_calls, 1)
 
     @defer.inlineCallbacks
@@ -264,7 +264,7 @@ class AgentTests(unittest.TestCase):
         yield until(lambda: any("removed from the platform" in line for line in self.log.lines))
         yield until(lambda: runner.stop_all_calls >= 1)
         yield until(lambda: self.master.counters["refused_not_provisioned"] >= 1)   # back to hello: refused now
-        self.assertEqual(self.master.connected_robots(), [])
+        self.assertEqual(sorted(self.master.sessions), [])
 
     @defer.inlineCallbacks
     def test_disconnect_of_an_unconnected_robot_is_a_no_op(self):
@@ -411,4 +411,4 @@ class HelloRulesTests(unittest.TestCase):
         self.assertEqual(caught.exception.code, "bad_request")
         answer = yield first
         self.assertTrue(answer["accepted"])
-        self.assertEqual(self.master.connected_robots(), ["robot1"])
+        self.assertEqual(sorted(self.master.sessions), ["robot1"])

@@ -1,5 +1,5 @@
-"""Service spaces with real ROS: ServiceSpaceManager (server side) and RobotSideRunner (robot side, in process,
-reached through a RemoteRobot that calls it directly), real rosmaster, real rosrun/roslaunch children of the
+"""Service spaces with real ROS: ServiceSpaceManager (server side) and ItemRunner (robot side, in process,
+reached through a RemoteAgent that calls it directly), real rosmaster, real rosrun/roslaunch children of the
 test package robotics_test, the real rcm_driver and FIROS. Each test checks that nothing it started is left."""
 
 import os
@@ -18,7 +18,7 @@ from twisted.trial import unittest
 from rcm_platform import rcmp_command, rcmp_ms, rcmp_service_item
 from rcm_platform.rcmp_config import make_config
 from rcm_platform.rcmp_service_command import describe
-from rcm_platform.rcmp_ms import RobotSideRunner, ServiceSpaceManager
+from rcm_platform.rcmp_ms import ItemRunner, ServiceSpaceManager
 from rcm_platform.rcmp_process import FAILED, LIVE_STATES, RUNNING, InvalidTransition, ProcessTable
 from tests.support.polling import until_deferred
 from tests.support.ports import port_accepts, ros_port_base
@@ -50,7 +50,7 @@ def launcher(name, side="S", package="robotics_test", launch_file="two_talkers.l
 
 
 class InProcessRobot:
-    """A RemoteRobot whose agent is a RobotSideRunner in this process (what rcmp_event does over TCP)."""
+    """A RemoteAgent whose agent is an ItemRunner in this process (what rcmp_event does over TCP)."""
 
     def __init__(self, name, runner):
         self.name = name
@@ -102,7 +102,7 @@ class ServiceSpaceTests(unittest.TestCase):
                                         ros_port_base=ros_port_base())
         self.exits = []
         self.states = []
-        self.runner = RobotSideRunner(reactor, self.robot_table, self.robot_config, env=self.env,
+        self.runner = ItemRunner(reactor, self.robot_table, self.robot_config, env=self.env,
                                       on_item_exited=self._robot_item_exited)
         self.manager = ServiceSpaceManager(reactor, self.master_table, self.master_config, "192.0.2.10",
                                            env=self.env, on_state=lambda *a: self.states.append(a[:2]))
@@ -429,7 +429,7 @@ class ServiceSpaceTests(unittest.TestCase):
 
     @defer.inlineCallbacks
     def test_a_space_placed_on_a_server_vm_runs_its_s_side_there(self):
-        """The master's capacity 0: the space goes to server vm1 (a RobotSideRunner as a server VM's agent has
+        """The master's capacity 0: the space goes to server vm1 (an ItemRunner as a server VM's agent has
         it), whose ROS master starts from vm1's own ros_port_base at vm1's address, with rcm_driver told
         r_connection there; the robot's R node uses vm1's master; teardown leaves nothing."""
         server_ip = "127.0.0.3"
@@ -440,7 +440,7 @@ class ServiceSpaceTests(unittest.TestCase):
                                     ros_port_base=ros_port_base(server_ip))
         server_table = ProcessTable(reactor, os.path.join(self.tmp, "server-log"), settle_time=1.0,
                                     stop_timeouts=(3.0, 1.0))
-        server = RobotSideRunner(reactor, server_table, server_config, env=self.env,
+        server = ItemRunner(reactor, server_table, server_config, env=self.env,
                                  on_item_exited=self.manager.item_exited)
         self.manager.add_server("vm1", InProcessRobot("vm1", server), 2, server_ip)
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py"),
