@@ -117,6 +117,13 @@ class _Lock:
 
 # -- PKI --------------------------------------------------------------------------------------------------
 
+def _backend():
+    """``cryptography``'s backend, which versions before 3.1 (Ubuntu 20.04: 2.8) require as an argument and later
+    ones accept and ignore: passed to every call that takes one."""
+    from cryptography.hazmat.backends import default_backend
+    return default_backend()
+
+
 def _crypto():
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes, serialization
@@ -131,7 +138,7 @@ def _now():
 
 def _new_key():
     _, _, _, ec, _, _ = _crypto()
-    return ec.generate_private_key(ec.SECP256R1())
+    return ec.generate_private_key(ec.SECP256R1(), _backend())
 
 
 def _key_pem(key):
@@ -159,7 +166,7 @@ def _make_ca():
                                          data_encipherment=False, key_agreement=False, key_cert_sign=True,
                                          crl_sign=True, encipher_only=False, decipher_only=False), critical=True)
             .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
-            .sign(key, hashes.SHA256()))
+            .sign(key, hashes.SHA256(), _backend()))
     return key, cert
 
 
@@ -181,7 +188,7 @@ def _issue(ca_key, ca_cert, common_name, server):
                                          crl_sign=False, encipher_only=False, decipher_only=False), critical=True)
             .add_extension(x509.ExtendedKeyUsage([usage]), critical=False)
             .add_extension(x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), critical=False)
-            .sign(ca_key, hashes.SHA256()))
+            .sign(ca_key, hashes.SHA256(), _backend()))
     return key, cert
 
 
@@ -194,9 +201,9 @@ def _crl_pem(ca_key, ca_cert, revoked):
     for entry in revoked:
         builder = builder.add_revoked_certificate(
             x509.RevokedCertificateBuilder().serial_number(entry["serial"])
-            .revocation_date(datetime.datetime.fromisoformat(entry["date"])).build())
+            .revocation_date(datetime.datetime.fromisoformat(entry["date"])).build(_backend()))
     _, _, serialization, _, _, _ = _crypto()
-    return builder.sign(ca_key, hashes.SHA256()).public_bytes(serialization.Encoding.PEM).decode("ascii")
+    return builder.sign(ca_key, hashes.SHA256(), _backend()).public_bytes(serialization.Encoding.PEM).decode("ascii")
 
 
 def _load_ca(home):
@@ -204,9 +211,9 @@ def _load_ca(home):
     folder = vpn_dir(home)
     try:
         with open(os.path.join(folder, "ca.key"), "rb") as f:
-            key = serialization.load_pem_private_key(f.read(), password=None)
+            key = serialization.load_pem_private_key(f.read(), password=None, backend=_backend())
         with open(os.path.join(folder, "ca.crt"), "rb") as f:
-            cert = x509.load_pem_x509_certificate(f.read())
+            cert = x509.load_pem_x509_certificate(f.read(), _backend())
     except (OSError, ValueError) as exc:
         raise VpnError(f"{folder}: cannot read the certificate authority: {exc}") from None
     return key, cert
