@@ -443,9 +443,9 @@ class _SpaceHost:
         4. the ROS master and rosout checked; then the space settles: paired or not.
 
         ``parts``: ``[(HERE or a RemoteAgent, [ServiceItem])]``; a remote part without items is skipped unless its
-        agent starts the master (then it is that agent's whole part). A SpaceError, also from one of the parts started together, ends the sequence and
-        becomes ``space.reason``; it is also what the Deferred fires with (None when there was none). Any other
-        error propagates and the space is not settled.
+        agent starts the master (then it is that agent's whole part). A SpaceError, also from one of the parts
+        started together, ends the sequence and becomes ``space.reason``; it is also what the Deferred fires with
+        (None when there was none). Any other error propagates and the space is not settled.
         """
         try:
             if master_on is HERE or any(host is HERE for host, _ in parts):

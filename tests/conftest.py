@@ -1,11 +1,24 @@
-"""Fixtures shared by the whole suite: owned child processes, a real ROS master on a free port, test hosts."""
+"""Fixtures shared by the whole suite: owned child processes, a real ROS master on a free port, test hosts, RCM
+agents as clients of rcm_driver; and the ``slow`` marker on every test of ``tests/system/`` (multi-process tests),
+so that ``-m 'not slow'`` (``./run test-fast``) runs the unit tests."""
 
 import os
 
 import pytest
 
+from tests.support.driver_client import AgentClient
 from tests.support.processes import ProcessGroup
 from tests.support.rosmaster import RosMaster
+
+
+SYSTEM = os.path.join(os.path.dirname(os.path.abspath(__file__)), "system") + os.sep
+
+
+def pytest_collection_modifyitems(items):
+    """Every test under tests/system/ starts child processes: it is ``slow``, set here once for the folder."""
+    for item in items:
+        if str(item.fspath).startswith(SYSTEM):
+            item.add_marker(pytest.mark.slow)
 
 
 @pytest.hookimpl(hookwrapper=True)
@@ -51,3 +64,19 @@ def lan(tmp_path):
     log_dir.mkdir()
     with Lan(log_dir=str(log_dir)) as network:
         yield network
+
+
+@pytest.fixture
+def agents():
+    """``agents(port)`` connects one more RCM agent (an ``AgentClient``) to an rcm_driver's port; all are closed
+    when the test ends."""
+    clients = []
+
+    def connect(port):
+        client = AgentClient(port)
+        clients.append(client)
+        return client
+
+    yield connect
+    for client in clients:
+        client.close()

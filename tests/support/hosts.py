@@ -21,10 +21,10 @@ What a ``Lan`` builds (root only; CAP_NET_ADMIN and CAP_SYS_ADMIN):
   because an installer needs the real content beside its own (``/etc/init.d/*``, ``/usr/lib/python3``);
   ``Host.private_path(path)`` names the host's upper copy of a path, to inspect what the host wrote. Below the
   private folders the host does not see this machine's own rcm-platform installation (``RCM_INSTALLATION``,
-  whited out in the upper layer, so also what ``tests/test_install.py`` installs there later) and sees the
+  whited out in the upper layer, so also what ``tests/system/test_install.py`` installs there later) and sees the
   ``/etc/rc?.d`` folders empty (opaque): its installer starts from a clean machine. Folders whose machine content
   a host does not need and that another test may change while the host lives (``/opt``, where
-  ``tests/test_install.py`` installs and removes ``/opt/rcm-platform``, and the package's dist-packages) are
+  ``tests/system/test_install.py`` installs and removes ``/opt/rcm-platform``, and the package's dist-packages) are
   ``fresh=`` instead: covered by an empty folder of the host's own (a bind mount), because overlayfs does not
   allow its lower layer to change under it. Hosts for an installation: ``private=INSTALL_PATHS,
   fresh=INSTALL_FRESH``.
@@ -71,7 +71,7 @@ VPN_SUBNET = "198.51.100.0/24"
 INSTALL_PATHS = ("/usr/local", "/etc", "/root", "/var/log", "/run")
 # folders an rcm-platform installer writes whose machine content a host does not need: replaced by empty ones
 INSTALL_FRESH = ("/opt", sysconfig.get_paths()["purelib"])
-# what an rcm-platform installation of this machine (tests/test_install.py may be running) places below those: a
+# what an rcm-platform installation of this machine (tests/system/test_install.py may be running) places below those: a
 # host never sees it, so its own installation starts from nothing (whiteouts in the overlay; the rc?.d folders
 # start empty, as update-rc.d's link names vary)
 RCM_INSTALLATION = ("/opt/rcm-platform", "/usr/local/bin/rcmp_n",

@@ -1,0 +1,38 @@
+"""rcmp_ms without processes: a service space's closed set of states, and where a new space is placed."""
+
+import pytest
+
+from rcm_platform import rcmp_ms
+from rcm_platform.rcmp_ms import Server, choose_server
+from rcm_platform.rcmp_process import InvalidTransition
+
+
+def test_a_space_changes_state_only_as_its_closed_set_allows():
+    space = rcmp_ms.ServiceSpace("robot1", "S", "ss", None, "master")
+    assert (space.state, space.creating, space.paired, space.cancelled) == ("creating", True, False, False)
+    with pytest.raises(InvalidTransition):
+        space.transition(rcmp_ms.SPACE_GONE, "a space is stopped before it is gone")
+    space.transition(rcmp_ms.SPACE_UNPAIRED, "created")
+    space.transition(rcmp_ms.SPACE_PAIRED, "its items run")
+    assert space.paired and not space.creating
+    with pytest.raises(InvalidTransition):
+        space.transition(rcmp_ms.SPACE_CREATING, "never again")
+    space.transition(rcmp_ms.SPACE_STOPPING, "teardown")
+    assert space.cancelled and not space.paired
+    with pytest.raises(InvalidTransition):
+        space.transition(rcmp_ms.SPACE_PAIRED, "a stopping space never pairs again")
+    space.transition(rcmp_ms.SPACE_GONE, "torn down")
+    assert space.cancelled
+    with pytest.raises(InvalidTransition):
+        space.transition("lost", "not a state")
+
+
+def test_placement_goes_to_the_lowest_load_ties_to_the_master_then_by_name():
+    master, vm1, vm2 = Server("master", 1, "a"), Server("vm1", 2, "b", host=object()), Server("vm2", 1, "c", host=1)
+    servers = [vm2, vm1, master]
+    assert choose_server(servers, {}) is master                          # all at 0: the master
+    assert choose_server(servers, {"master": 1}) is vm1                  # master full; vm1 and vm2 at 0: by name
+    assert choose_server(servers, {"master": 1, "vm1": 1}) is vm2        # vm1 at 1/2, vm2 at 0/1
+    assert choose_server(servers, {"master": 1, "vm1": 1, "vm2": 1}) is vm1
+    assert choose_server(servers, {"master": 1, "vm1": 2, "vm2": 1}) is None   # no room anywhere
+    assert choose_server([Server("master", 0, "a")], {}) is None         # 0: a pure coordinator

@@ -1,0 +1,1 @@
+"""Unit tests of ``robotics_msgs``: the generated messages and service."""
