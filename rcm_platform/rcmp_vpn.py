@@ -602,7 +602,7 @@ class ManagedVpn(_service_base()):
 
     def __init__(self, config, conf_path, table, reactor, address_of):
         self.config = config
-        self.address_of = address_of          # () -> the platform address or None (rcmp_node.platform_address)
+        self.address_of = address_of          # () -> the platform address or None (rcmp_config.platform_address)
         self.conf_path = conf_path
         self.table = table
         self.reactor = reactor
