@@ -45,7 +45,7 @@ bench: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all
 
 dist:
-	for what in "" master robot firos rcm_driver robotics_msgs; do ./create_robotics_pkg $$what -o dist || exit 1; done
+	for what in "" master robot firos rcm_driver robotics_msgs demo; do ./create_robotics_pkg $$what -o dist || exit 1; done
 
 clean:
 	rm -rf build
