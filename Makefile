@@ -7,12 +7,14 @@ export PATH := /usr/bin:/bin:/usr/sbin:/sbin:$(PATH)
 WS := build/rcmp_ws
 OVERLAY := $(WS)/devel/setup.bash
 PYTEST_ARGS ?=
+DEMO_ARGS ?=
 
 .PHONY: help deps build test test-fast demo demo-hosts bench dist clean
 
 help:
 	@echo "make demo   - start a master and a robot on this machine (loopback) and pair them"
 	@echo "make demo-hosts - a master and two robots, each in a network namespace, over the platform's own VPN"
+	@echo "                  (options of either demo: ./run demo-hosts DEMO_ARGS='--console-port 8090')"
 	@echo "make test   - install what the tests need, build the catkin workspace, run every test"
 	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
 	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
@@ -34,16 +36,16 @@ test-fast: build
 	bash scripts/run-tests.sh -m 'not slow' $(PYTEST_ARGS)
 
 demo: deps build
-	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo
+	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo $(DEMO_ARGS)
 
 demo-hosts: deps build
-	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo_hosts
+	bash scripts/with-overlay.sh $(PYTHON) -m demo.run_demo_hosts $(DEMO_ARGS)
 
 bench: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all
 
 dist:
-	for what in "" master robot firos rcm_driver robotics_msgs; do ./create_robotics_pkg $$what -o dist || exit 1; done
+	for what in "" master robot firos rcm_driver robotics_msgs demo; do ./create_robotics_pkg $$what -o dist || exit 1; done
 
 clean:
 	rm -rf build

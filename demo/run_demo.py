@@ -11,6 +11,7 @@ robot agent, then the master, and checks that each agent's process group is gone
 import argparse
 import json
 import os
+import shlex
 import shutil
 import signal
 import socket
@@ -134,10 +135,27 @@ def wait_for(what, condition, timeout, agents):
     raise DemoError(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
+def console_link(base_url, robot, topic="/pose"):
+    """The console's page of ``robot`` with ``topic`` drawn (the page takes the topic from its address)."""
+    return f"{base_url}/console/#/robot/{robot}?topic={topic}"
+
+
+def example_settings(host, master_home, ros_master_uri):
+    """The lines that let the examples of docs/RDAPI.md and docs/FIROS.md run as they are written, against this
+    demo, from this clone: the workspace overlay (firos, rcm, robotics_msgs, robotics_demo), ``MASTER`` (the
+    RDAPI's address), ``RCMP_HOME`` (the master's platform folder, for ``rcmp_n token``), ``ROS_MASTER_URI`` (the
+    robot's service space) and a PATH that finds this clone's ``rcmp_n`` and the system's ``python3`` (ROS's)."""
+    overlay = os.path.join(ROOT, "build", "rcmp_ws", "devel", "setup.bash")
+    exports = {"MASTER": host, "RCMP_HOME": master_home, "ROS_MASTER_URI": ros_master_uri}
+    words = " ".join(f"{key}={shlex.quote(value)}" for key, value in exports.items())
+    return [f"source {shlex.quote(overlay)}", f"export {words} PATH={shlex.quote(ROOT)}:/usr/bin:$PATH"]
+
+
 def describe(base_url, master_home, robot_home):
     host = base_url[len("http://"):]
     space = call(base_url, f"/service_space/read?ss_name={ROBOT_NAME}").get("reason", {})
     uri = space.get("ros_master_uri", "") if isinstance(space, dict) else ""
+    settings = "\n".join("  " + line for line in example_settings(host, master_home, uri or "http://127.0.0.1:11311/"))
     print(f"""
 The demo is running: master RDAPI at {base_url}, robot '{ROBOT_NAME}' on {ROBOT_ADDRESS}, paired.
 Look around with the seed guide's commands (public_ip_master is {host}):
@@ -148,13 +166,17 @@ Look around with the seed guide's commands (public_ip_master is {host}):
   curl http://{host}/service_logic/read?slg_name={SERVICE_LOGIC['slg_name']}
   curl "http://{host}/service_space/read?ss_name={ROBOT_NAME}"
 
-Watch the platform and the robot circle in a browser, live (the console; choose the topic /pose):
+Watch the platform and the robot circle in a browser, live (the console, on the robot's /pose):
 
-  Console: http://{host}/console/#/robot/{ROBOT_NAME}
+  Console: {console_link(base_url, ROBOT_NAME)}
 
 The robot's service space is a ROS master of its own{(' at ' + uri) if uri else ''}; on the command line:
 
   PATH=/usr/bin:$PATH ROS_MASTER_URI={uri or 'http://127.0.0.1:<port>/'} rostopic echo /pose
+
+To run the examples of docs/RDAPI.md and docs/FIROS.md as they are written, first paste in that terminal:
+
+{settings}
 
 Logs: {os.path.join(master_home, 'log')} (master) and {os.path.join(robot_home, 'log')} (robot).
 Press Ctrl-C to stop everything.

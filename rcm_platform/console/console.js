@@ -167,7 +167,7 @@ function render() {
 }
 
 function robotRow(r) {
-  const link = el("a", { href: "#/robot/" + encodeURIComponent(r.pi_name), text: r.pi_name });
+  const link = el("a", { href: robotHash(r.pi_name, ""), text: r.pi_name });
   return el("tr", { "data-name": r.pi_name },
     el("td", {}, link), el("td", { text: r.service_logic || "" }),
     el("td", {}, yesNo(r.connected, "connected", "not connected")),
@@ -318,9 +318,8 @@ function onTopicEvent(name, data) {
     const select = $("topic-select");
     const options = [el("option", { value: "", text: "choose a topic…" })];
     for (const [topic, type] of data.topics) options.push(el("option", { value: topic, text: `${topic} (${type})` }));
-    const current = ui.topic;
     replaceChildren(select, options);
-    select.value = current;
+    showTopicChoice();
     if (!ui.topic) $("topic-status").textContent = `${data.topics.length} topic(s) in the service space`;
   } else if (name === "samples") {
     plot.type = data.type || "";
@@ -356,56 +355,142 @@ function drawPlot() {
     new Date(last.t * 1000).toLocaleTimeString();
 }
 
-function frame(canvas, xs, ys) {
+/* The plot's geometry, in CSS pixels: the canvas's backing store is its CSS box times the screen's pixel ratio,
+   so text drawn at PLOT_FONT_PX is that size on screen. */
+const PLOT_FONT_PX = 14;
+const PLOT_PAD = { left: 64, right: 18, top: 14, bottom: 52 };
+const TRAIL_MARGIN_PX = 28;   // room around a trail for the robot's marker and heading
+
+function plotContext(canvas) {
+  const ratio = window.devicePixelRatio || 1;
+  const w = Math.max(1, canvas.clientWidth), h = Math.max(1, canvas.clientHeight);
+  if (canvas.width !== Math.round(w * ratio) || canvas.height !== Math.round(h * ratio)) {
+    canvas.width = Math.round(w * ratio);
+    canvas.height = Math.round(h * ratio);
+  }
   const ctx = canvas.getContext("2d");
-  const w = canvas.width, h = canvas.height, pad = 30;
+  ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
   ctx.clearRect(0, 0, w, h);
-  let x0 = Math.min(...xs), x1 = Math.max(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
-  if (x1 - x0 < 1e-9) { x0 -= 1; x1 += 1; }
-  if (y1 - y0 < 1e-9) { y0 -= 1; y1 += 1; }
-  const sx = (w - 2 * pad) / (x1 - x0), sy = (h - 2 * pad) / (y1 - y0);
-  ctx.fillStyle = "#5a6270";
-  ctx.font = "12px sans-serif";
-  ctx.fillText(`y ${y0.toFixed(2)} … ${y1.toFixed(2)}`, 4, 14);
-  ctx.fillText(`x ${x0.toFixed(2)} … ${x1.toFixed(2)}`, 4, h - 6);
-  return { ctx, px: (x) => pad + (x - x0) * sx, py: (y) => h - pad - (y - y0) * sy };
+  const area = { x: PLOT_PAD.left, y: PLOT_PAD.top, w: Math.max(1, w - PLOT_PAD.left - PLOT_PAD.right),
+                 h: Math.max(1, h - PLOT_PAD.top - PLOT_PAD.bottom) };
+  return { ctx, w, h, area };
+}
+
+/* Tick positions every 1, 2 or 5 times a power of ten, about `count` of them over [lo, hi]. */
+function ticks(lo, hi, count) {
+  const raw = (hi - lo) / Math.max(1, count);
+  const power = Math.pow(10, Math.floor(Math.log10(raw)));
+  const step = [1, 2, 5, 10].map((m) => m * power).find((s) => s >= raw) || 10 * power;
+  const digits = Math.max(0, -Math.floor(Math.log10(step) + 1e-9));
+  const out = [];
+  for (let v = Math.ceil(lo / step - 1e-9) * step; v <= hi + step * 1e-9; v += step) {
+    out.push({ value: v, label: (Math.abs(v) < step / 2 ? 0 : v).toFixed(digits) });
+  }
+  return out;
+}
+
+/* Axes, grid and labels for the ranges x [x0, x1] and y [y0, y1] filling `area`; returns the mapping. The ranges
+   and scales are kept on the canvas (data-axes) for whoever checks the drawing. */
+function axes(canvas, plotted, xRange, yRange, xTitle, yTitle) {
+  const { ctx, area } = plotted;
+  const [x0, x1] = xRange, [y0, y1] = yRange;
+  const sx = area.w / (x1 - x0), sy = area.h / (y1 - y0);
+  const px = (x) => area.x + (x - x0) * sx, py = (y) => area.y + area.h - (y - y0) * sy;
+  const font = `${PLOT_FONT_PX}px ${getComputedStyle(canvas).fontFamily || "sans-serif"}`;
+  ctx.font = font;
+  ctx.lineWidth = 1;
+  ctx.strokeStyle = "#e3e7ec";
+  ctx.fillStyle = "#3d4450";
+  ctx.textAlign = "center";
+  ctx.textBaseline = "top";
+  const xTicks = ticks(x0, x1, Math.max(2, Math.floor(area.w / 80)));
+  for (const t of xTicks) {
+    ctx.beginPath(); ctx.moveTo(px(t.value), area.y); ctx.lineTo(px(t.value), area.y + area.h); ctx.stroke();
+    ctx.fillText(t.label, px(t.value), area.y + area.h + 6);
+  }
+  ctx.textAlign = "right";
+  ctx.textBaseline = "middle";
+  const yTicks = ticks(y0, y1, Math.max(2, Math.floor(area.h / 60)));
+  for (const t of yTicks) {
+    ctx.beginPath(); ctx.moveTo(area.x, py(t.value)); ctx.lineTo(area.x + area.w, py(t.value)); ctx.stroke();
+    ctx.fillText(t.label, area.x - 8, py(t.value));
+  }
+  ctx.strokeStyle = "#9aa4b1";
+  ctx.strokeRect(area.x, area.y, area.w, area.h);
+  ctx.textAlign = "center";
+  ctx.textBaseline = "bottom";
+  ctx.fillText(xTitle, area.x + area.w / 2, plotted.h - 4);
+  ctx.save();
+  ctx.translate(14, area.y + area.h / 2);
+  ctx.rotate(-Math.PI / 2);
+  ctx.textBaseline = "middle";
+  ctx.fillText(yTitle, 0, 0);
+  ctx.restore();
+  canvas.dataset.axes = JSON.stringify({
+    font, x: { min: x0, max: x1, pxPerUnit: sx, title: xTitle, ticks: xTicks.map((t) => t.label) },
+    y: { min: y0, max: y1, pxPerUnit: sy, title: yTitle, ticks: yTicks.map((t) => t.label) } });
+  return { ctx, px, py, area };
 }
 
 function drawTrail(canvas) {
   const pts = plot.samples.filter((s) => s.x !== undefined);
   const xs = pts.map((p) => p.x), ys = pts.map((p) => p.y);
-  // same scale on both axes, so a circle looks like one
-  const span = Math.max(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys), 1);
-  const cx = (Math.max(...xs) + Math.min(...xs)) / 2, cy = (Math.max(...ys) + Math.min(...ys)) / 2;
-  const ratio = canvas.width / canvas.height;
-  const { ctx, px, py } = frame(canvas, [cx - span * ratio / 2, cx + span * ratio / 2], [cy - span / 2, cy + span / 2]);
+  const plotted = plotContext(canvas);
+  // one scale for both axes (a circle is drawn as a circle): the trail, with room for the robot's marker around
+  // it, fills the plot along one axis; the other axis shows more of the plane around the trail
+  const minX = Math.min(...xs), maxX = Math.max(...xs), minY = Math.min(...ys), maxY = Math.max(...ys);
+  const spanX = Math.max(maxX - minX, 0.5), spanY = Math.max(maxY - minY, 0.5);
+  const room = 2 * TRAIL_MARGIN_PX;
+  const scale = Math.min(Math.max(1, plotted.area.w - room) / spanX, Math.max(1, plotted.area.h - room) / spanY);
+  const cx = (minX + maxX) / 2, cy = (minY + maxY) / 2;
+  const halfW = plotted.area.w / scale / 2, halfH = plotted.area.h / scale / 2;
+  const { ctx, px, py, area } = axes(canvas, plotted, [cx - halfW, cx + halfW], [cy - halfH, cy + halfH],
+                                     "x (m)", "y (m)");
+  ctx.save();
+  ctx.beginPath();
+  ctx.rect(area.x, area.y, area.w, area.h);
+  ctx.clip();
   ctx.strokeStyle = "#0a58ca";
-  ctx.lineWidth = 2;
+  ctx.lineWidth = 2.5;
+  ctx.lineJoin = "round";
   ctx.beginPath();
   pts.forEach((p, i) => (i ? ctx.lineTo(px(p.x), py(p.y)) : ctx.moveTo(px(p.x), py(p.y))));
   ctx.stroke();
   const last = pts[pts.length - 1];
   ctx.fillStyle = "#c62828";
   ctx.beginPath();
-  ctx.arc(px(last.x), py(last.y), 6, 0, 2 * Math.PI);
+  ctx.arc(px(last.x), py(last.y), 7, 0, 2 * Math.PI);
   ctx.fill();
   if (last.theta !== undefined) {
+    ctx.strokeStyle = "#c62828";
     ctx.beginPath();
     ctx.moveTo(px(last.x), py(last.y));
-    ctx.lineTo(px(last.x) + 16 * Math.cos(last.theta), py(last.y) - 16 * Math.sin(last.theta));
+    ctx.lineTo(px(last.x) + 20 * Math.cos(last.theta), py(last.y) - 20 * Math.sin(last.theta));
     ctx.stroke();
   }
+  ctx.restore();
 }
 
 function drawLine(canvas) {
   const pts = plot.samples.filter((s) => s.value !== undefined);
-  const xs = pts.map((p, i) => i), ys = pts.map((p) => p.value);
-  const { ctx, px, py } = frame(canvas, xs, ys);
-  ctx.strokeStyle = "#0a58ca";
-  ctx.lineWidth = 2;
+  const newest = pts[pts.length - 1].t;
+  const xs = pts.map((p) => p.t - newest), ys = pts.map((p) => p.value);
+  let x0 = Math.min(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
+  if (-x0 < 1) x0 = -1;
+  if (y1 - y0 < 1e-9) { y0 -= 1; y1 += 1; }
+  const margin = (y1 - y0) * 0.05;
+  const { ctx, px, py, area } = axes(canvas, plotContext(canvas), [x0, 0], [y0 - margin, y1 + margin],
+                                     "time (s, 0 = newest sample)", "value");
+  ctx.save();
   ctx.beginPath();
-  pts.forEach((p, i) => (i ? ctx.lineTo(px(i), py(p.value)) : ctx.moveTo(px(i), py(p.value))));
+  ctx.rect(area.x, area.y, area.w, area.h);
+  ctx.clip();
+  ctx.strokeStyle = "#0a58ca";
+  ctx.lineWidth = 2.5;
+  ctx.beginPath();
+  pts.forEach((p, i) => (i ? ctx.lineTo(px(xs[i]), py(p.value)) : ctx.moveTo(px(xs[i]), py(p.value))));
   ctx.stroke();
+  ctx.restore();
 }
 
 // -- forms ---------------------------------------------------------------------------------------------------
@@ -471,22 +556,54 @@ async function submitForm(event) {
 }
 
 // -- navigation ----------------------------------------------------------------------------------------------
+/* Where the address points: the overview (#/), or a robot's page (#/robot/NAME), optionally with the topic to
+   show (#/robot/NAME?topic=/pose), so that a link can open a robot's page on its plot. */
+function parseHash(hash) {
+  const match = hash.match(/^#\/robot\/([^?]+)(?:\?(.*))?$/);
+  if (!match) return { view: "overview", robot: null, topic: "" };
+  let robot;
+  try { robot = decodeURIComponent(match[1]); } catch (e) { robot = match[1]; }
+  const topic = new URLSearchParams(match[2] || "").get("topic") || "";
+  return { view: "robot", robot, topic: topic.startsWith("/") ? topic : "" };
+}
+function robotHash(robot, topic) {
+  const query = topic ? "?topic=" + encodeURIComponent(topic).replace(/%2F/g, "/") : "";
+  return "#/robot/" + encodeURIComponent(robot) + query;
+}
+
+function showTopicChoice() {
+  const select = $("topic-select");
+  if (ui.topic && !Array.from(select.options).some((o) => o.value === ui.topic)) {
+    select.appendChild(el("option", { value: ui.topic, text: ui.topic }));
+  }
+  select.value = ui.topic;
+}
+
 function route() {
-  const match = location.hash.match(/^#\/robot\/(.+)$/);
-  const view = match ? "robot" : "overview";
-  const robot = match ? decodeURIComponent(match[1]) : null;
-  const changed = view !== ui.view || robot !== ui.robot;
-  ui.view = view;
-  ui.robot = robot;
-  $("overview").hidden = view !== "overview";
-  $("robot-view").hidden = view !== "robot";
+  const where = parseHash(location.hash);
+  const changed = where.view !== ui.view || where.robot !== ui.robot;
+  const topicChanged = where.topic !== ui.topic;
+  ui.view = where.view;
+  ui.robot = where.robot;
+  ui.topic = where.topic;
+  $("overview").hidden = ui.view !== "overview";
+  $("robot-view").hidden = ui.view !== "robot";
   if (changed || !ui.stream) {
-    ui.topic = "";
-    $("topic-select").value = "";
+    if (changed) replaceChildren($("topic-select"), [el("option", { value: "", text: "choose a topic…" })]);
+    showTopicChoice();
     restartStream();
-    if (view === "robot") openTopic(); else stopTopic();
+    if (ui.view === "robot") openTopic(); else stopTopic();
+  } else if (topicChanged && ui.view === "robot") {
+    showTopicChoice();
+    openTopic();
   }
   render();
+}
+
+function chooseTopic(topic) {
+  ui.topic = topic;
+  history.replaceState(null, "", robotHash(ui.robot, topic));   // the address names what is shown
+  openTopic();
 }
 
 function start() {
@@ -494,7 +611,8 @@ function start() {
   $("add-node").addEventListener("click", () => addItemRow("node"));
   $("add-launcher").addEventListener("click", () => addItemRow("launcher"));
   $("robots-filter").addEventListener("input", renderRobots);
-  $("topic-select").addEventListener("change", (e) => { ui.topic = e.target.value; openTopic(); });
+  $("topic-select").addEventListener("change", (e) => chooseTopic(e.target.value));
+  if (window.ResizeObserver) new ResizeObserver(() => { if (!$("topic-canvas").hidden) drawPlot(); }).observe($("topic-canvas"));
   $("topic-form").addEventListener("submit", (e) => e.preventDefault());
   $("token-form").addEventListener("submit", (e) => {
     e.preventDefault();
@@ -505,6 +623,18 @@ function start() {
     if (ui.view === "robot") openTopic();
   });
   window.addEventListener("hashchange", route);
+  // a page the browser keeps for "back" (its back/forward cache) would hold its streams open, and a browser
+  // opens only six connections to one server: close them when the page is hidden, open them again on return
+  window.addEventListener("pagehide", () => {
+    stopTopic();
+    if (ui.stream && ui.stream.abort) ui.stream.abort();
+    ui.stream = null;
+  });
+  window.addEventListener("pageshow", (event) => {
+    if (!event.persisted) return;
+    restartStream();
+    if (ui.view === "robot") openTopic();
+  });
   route();
 }
 

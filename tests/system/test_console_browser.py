@@ -15,7 +15,7 @@ from selenium.webdriver.common.by import By
 from selenium.webdriver.common.keys import Keys
 from selenium.webdriver.support.ui import Select
 
-from demo.run_demo import SERVICE_LOGIC as DEMO_LOGIC
+from demo.run_demo import SERVICE_LOGIC as DEMO_LOGIC, console_link
 from tests.support.browser import Browser
 from tests.support.lifecycle import Platform
 from tests.support.paths import REPO
@@ -232,21 +232,33 @@ def test_an_item_that_fails_shows_its_error_and_its_log(browser, platform, page)
     assert platform.remove_robot("bot_broken")[0] == 200
 
 
-def test_the_live_view_of_the_demo_robots_pose_draws_and_changes(browser, platform, page):
+def plot_geometry(browser):
+    """Where the plot sits in the window, its axes (the page keeps them on the canvas) and its backing store."""
+    return browser.js("""
+        const canvas = document.getElementById('topic-canvas');
+        const box = canvas.getBoundingClientRect();
+        return {top: box.top, bottom: box.bottom, left: box.left, right: box.right, innerHeight, innerWidth,
+                scrolled: window.scrollY, ratio: window.devicePixelRatio, cssWidth: canvas.clientWidth,
+                cssHeight: canvas.clientHeight, width: canvas.width, height: canvas.height,
+                axes: JSON.parse(canvas.dataset.axes || 'null')};""")
+
+
+def test_the_demos_robot_link_opens_on_its_pose_drawn_in_view_with_equal_scales(browser, platform, page):
     platform.provision_logic(DEMO_LOGIC["slg_name"], sn_list=DEMO_LOGIC["sn_list"], sl_list=DEMO_LOGIC["sl_list"])
     platform.provision_robot("demo_robot", DEMO_LOGIC["slg_name"])
     platform.robot("demo_robot", "127.0.0.4").start()
+    browser.driver.set_window_size(1280, 1000)     # a laptop's screen: the plot must be in view as the page opens
     try:
         platform.wait_state("demo_robot", True, True)
-        browser.driver.get(platform.master.base_url + "/console/#/robot/" + urllib.parse.quote("demo_robot"))
+        # the link ./run demo prints, as it prints it: the page opens on /pose with nothing chosen by hand
+        link = console_link(platform.master.base_url, "demo_robot")
+        assert link.endswith("/console/#/robot/demo_robot?topic=/pose")
+        browser.driver.get(link)
         select = browser.driver.find_element(By.ID, "topic-select")
-        wait_until(lambda: "/pose" in [o.get_attribute("value") for o in Select(select).options], timeout=30,
-                   message="the topic list to offer /pose")
-        page("topics-listed")
-        Select(select).select_by_value("/pose")
         canvas = browser.driver.find_element(By.ID, "topic-canvas")
-        wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 5, timeout=20,
-                   message="samples of /pose on the page")
+        wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 5, timeout=30,
+                   message="samples of /pose on the page, without choosing the topic")
+        assert Select(select).first_selected_option.get_attribute("value") == "/pose"
         first = (canvas.get_attribute("data-last"), browser.js("return arguments[0].toDataURL()", canvas))
         wait_until(lambda: canvas.get_attribute("data-last") != first[0], timeout=10, message="the pose to change")
         wait_until(lambda: browser.js("return arguments[0].toDataURL()", canvas) != first[1], timeout=10,
@@ -254,21 +266,115 @@ def test_the_live_view_of_the_demo_robots_pose_draws_and_changes(browser, platfo
         page("pose-trail")
         assert canvas.is_displayed()
         assert "geometry_msgs/Pose2D" in browser.driver.find_element(By.ID, "topic-status").text
+        wait_until(lambda: "/pose (geometry_msgs/Pose2D)" in [o.text for o in Select(select).options], timeout=10,
+                   message="the topic list to name /pose with its type")
+
+        where = plot_geometry(browser)
+        # in view as the page opened: not below the fold, not scrolled to
+        assert where["scrolled"] == 0 and 0 <= where["top"] and where["bottom"] <= where["innerHeight"], where
+        assert where["right"] <= where["innerWidth"], where
+        # drawn at the size it is shown, so its labels are the size they are written in
+        assert (where["width"], where["height"]) == (round(where["cssWidth"] * where["ratio"]),
+                                                     round(where["cssHeight"] * where["ratio"])), where
+        axes = where["axes"]
+        assert axes["x"]["title"] == "x (m)" and axes["y"]["title"] == "y (m)"
+        assert int(axes["font"].split("px")[0]) >= 13, axes["font"]
+        assert len(axes["x"]["ticks"]) >= 2 and len(axes["y"]["ticks"]) >= 2, axes
+        # one metre is as long across as up
+        assert abs(axes["x"]["pxPerUnit"] - axes["y"]["pxPerUnit"]) <= 1e-6 * axes["x"]["pxPerUnit"], axes
+
+        # choosing another topic puts it in the address, so that the link shows what the page shows
+        Select(select).select_by_value("/cmd_vel")
+        wait_until(lambda: browser.js("return location.hash") == "#/robot/demo_robot?topic=/cmd_vel", timeout=5,
+                   message="the address to name /cmd_vel")
+        wait_until(lambda: "geometry_msgs/Twist" in browser.driver.find_element(By.ID, "topic-status").text,
+                   timeout=20, message="/cmd_vel shown")
+        page("cmd-vel-text")
         if DOC_SHOTS:
-            wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 60, timeout=30,
-                       message="a longer trail for the documentation")
-            browser.driver.set_window_size(1100, 1300)
-            try:
-                browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-robot.png"))
-                browser.driver.get(platform.master.base_url + "/console/")
-                wait_until(lambda: row_cells(browser, "robots", "demo_robot"), timeout=10, message="the overview")
-                browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-overview.png"))
-            finally:
-                browser.driver.set_window_size(1280, 900)
+            browser.driver.get(link)
+            canvas = browser.driver.find_element(By.ID, "topic-canvas")
+            wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 270, timeout=60,
+                       message="a whole circle (25 s at 0.5 m/s on 2 m) for the documentation")
+            browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-robot.png"))
+            browser.driver.get(platform.master.base_url + "/console/")
+            wait_until(lambda: row_cells(browser, "robots", "demo_robot"), timeout=10, message="the overview")
+            browser.driver.save_screenshot(os.path.join(ROOT, "docs", "console-overview.png"))
         assert [e for e in browser.console_errors() if "Uncaught" in e.get("message", "")] == []
     finally:
+        browser.driver.set_window_size(1280, 900)
         stop_robot(platform, "demo_robot")
     assert platform.remove_robot("demo_robot")[0] == 200
+
+
+def stroke_box(browser):
+    """The bounding box (device pixels) of what the plot drew in the trail's blue, and how many pixels that is."""
+    return browser.js("""
+        const canvas = document.getElementById('topic-canvas');
+        const {width, height} = canvas;
+        const data = canvas.getContext('2d').getImageData(0, 0, width, height).data;
+        let x0 = width, x1 = -1, y0 = height, y1 = -1, count = 0;
+        for (let y = 0; y < height; y++) for (let x = 0; x < width; x++) {
+          const i = 4 * (y * width + x), r = data[i], g = data[i + 1], b = data[i + 2];
+          if (b > 150 && r < 90 && g < 150 && b - r > 100) {     // the trail's #0a58ca, edges included
+            count++; x0 = Math.min(x0, x); x1 = Math.max(x1, x); y0 = Math.min(y0, y); y1 = Math.max(y1, y);
+          }
+        }
+        return {x0, x1, y0, y1, count, ratio: window.devicePixelRatio};""")
+
+
+def test_a_robot_going_round_a_circle_is_drawn_as_a_circle(browser, platform, page):
+    """The demo's brain on a small fast circle (0.75 m at 1.5 m/s: one turn in about 3 s); the drawn trail's box
+    is as wide as it is high, and as wide as the circle at the plot's scale."""
+    brain, body = dict(DEMO_LOGIC["sn_list"][1]), DEMO_LOGIC["sn_list"][0]
+    brain["sn_params"] = "_speed:=1.5 _radius:=0.75"
+    platform.provision_logic("console_circle", sn_list=[body, brain])
+    platform.provision_robot("circler", "console_circle")
+    platform.robot("circler", "127.0.0.6").start()
+    try:
+        platform.wait_state("circler", True, True)
+        browser.driver.get(console_link(platform.master.base_url, "circler"))
+        canvas = browser.driver.find_element(By.ID, "topic-canvas")
+        wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 50, timeout=40,
+                   message="more than one turn of /pose on the page")
+        page("circle")
+        box = stroke_box(browser)
+        width, height = box["x1"] - box["x0"], box["y1"] - box["y0"]
+        assert box["count"] > 100 and height > 50, box
+        assert 0.93 <= width / height <= 1.07, box
+        scale = plot_geometry(browser)["axes"]["x"]["pxPerUnit"] * box["ratio"]
+        assert abs(width - 2 * 0.75 * scale) <= 0.15 * 2 * 0.75 * scale, (box, scale)
+    finally:
+        stop_robot(platform, "circler")
+    assert platform.remove_robot("circler")[0] == 200
+
+
+def test_leaving_the_page_and_coming_back_many_times_keeps_it_live(browser, platform, page):
+    """A browser opens at most six connections to one server and keeps the pages it left for its Back button: a
+    page kept with its streams open would, after a few visits, leave no connection for the next page. Each round
+    leaves the page (its streams must close), changes the platform meanwhile, comes back with Back (the kept page
+    must open its streams again and show the change), then opens a new console page."""
+    console = platform.master.base_url + "/console/"
+    added = []
+    browser.driver.set_page_load_timeout(15)    # a page waiting for a free connection never loads in time
+    try:
+        for visit in range(8):
+            browser.js("window.keptPage = arguments[0]", visit)
+            browser.driver.get("about:blank")
+            name = f"away_{visit}"
+            platform.provision_robot(name, "empty")
+            added.append(name)
+            browser.driver.back()
+            wait_until(lambda: row_cells(browser, "robots", name), timeout=10,
+                       message=f"visit {visit}: the page, shown again, to show what changed while it was away")
+            assert browser.js("return window.keptPage") == visit     # the kept page, not a reload
+            browser.driver.get(console + f"?visit={visit}")             # a new page; the previous one is kept
+            wait_until(lambda: row_cells(browser, "robots", name), timeout=10,
+                       message=f"visit {visit}: a new console page to be live")
+        page("after-visits")
+    finally:
+        browser.driver.set_page_load_timeout(60)
+        for name in added:
+            platform.remove_robot(name)
 
 
 def test_a_server_vm_that_joins_and_leaves_shows_live(browser, platform, page):

@@ -84,8 +84,11 @@ def test_demo_pairs_shows_the_seed_commands_and_stops_cleanly_on_ctrl_c(procs, t
 
     # the console shows it: its page, and the live pose the page plots (the browser itself: test_console_browser)
     console = re.search(r"Console: (http://\S+)", text).group(1)
-    assert console == f"http://127.0.0.1:{port}/console/#/robot/demo_robot"
+    assert console == f"http://127.0.0.1:{port}/console/#/robot/demo_robot?topic=/pose"   # opens on the plot
     assert "<title>RCM platform console</title>" in _curl(console.split("#")[0])
+    # the settings that let the docs' examples run as written (tests/system/test_doc_examples.py runs them)
+    assert f"export MASTER=127.0.0.1:{port} RCMP_HOME={workdir}/master ROS_MASTER_URI={uri} PATH={ROOT}:/usr/bin:$PATH" \
+        in text
     assert _console_pose_moves(f"http://127.0.0.1:{port}")
 
     assert _processes_mentioning(workdir)

@@ -44,6 +44,15 @@ def test_demo_hosts_pairs_two_robots_over_the_vpn_and_ctrl_c_removes_everything(
     listing = subprocess.run(vpn_argv, capture_output=True, text=True, timeout=30, cwd=ROOT).stdout
     assert listing == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 connected\n"
 
+    # the console, from this machine's browser: a loopback port forwarded into the master's machine; each robot's
+    # printed link opens on its pose
+    console = re.search(r"Console: (http://127\.0\.0\.1:(\d+))/console/\n", text)
+    assert console, text
+    assert f"robot1: {console.group(1)}/console/#/robot/robot1?topic=/pose" in text
+    served = subprocess.run(["curl", "-s", "-S", console.group(1) + "/platform_instance/read"], capture_output=True,
+                            text=True, timeout=20).stdout
+    assert {(r["pi_name"], r["paired"]) for r in json.loads(served)["reason"]} == {("robot1", True), ("robot2", True)}
+
     os.killpg(demo.pid, signal.SIGINT)  # what Ctrl-C in the terminal does
     assert demo.wait(timeout=90) == 0
     assert "demo-hosts: stopped" in procs.output(demo)
@@ -51,4 +60,5 @@ def test_demo_hosts_pairs_two_robots_over_the_vpn_and_ctrl_c_removes_everything(
     wait_until(lambda: not processes_mentioning(workdir), timeout=10,
                message="every demo process (agents, OpenVPN, ROS) to be gone")
     assert not group_alive(demo.pid)
+    assert subprocess.run(["curl", "-s", console.group(1)], capture_output=True, timeout=20).returncode != 0
     assert re.search(r"rcmp_n stopped", open(os.path.join(workdir, "master", "log", "rcmp.log")).read())
