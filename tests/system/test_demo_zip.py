@@ -14,7 +14,7 @@ import zipfile
 
 import pytest
 
-from rcm_platform.rcmp_node import workspace_overlay
+from rcm_platform.rcmp_service_item import workspace_overlay
 from tests.support.polling import wait_until
 from tests.support.rosmaster import RosMaster
 
