@@ -187,6 +187,8 @@ def parse_iso_time(text):
     """An ISO 8601 date or date-time (naive means UTC) → seconds since the epoch; ValueError if malformed."""
     if not isinstance(text, str) or not text:
         raise ValueError("not a date")
+    if text[-1] in "Zz":  # Python 3.11 reads the "Z" suffix itself, earlier ones only "+00:00"
+        text = text[:-1] + "+00:00"
     moment = datetime.fromisoformat(text)
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=timezone.utc)
