@@ -9,13 +9,14 @@ OVERLAY := $(WS)/devel/setup.bash
 PYTEST_ARGS ?=
 DEMO_ARGS ?=
 
-.PHONY: help deps build test test-fast demo demo-hosts bench dist clean
+.PHONY: help deps build test test-fast compat demo demo-hosts bench dist clean
 
 help:
 	@echo "make demo   - start a master and a robot on this machine (loopback) and pair them"
 	@echo "make demo-hosts - a master and two robots, each in a network namespace, over the platform's own VPN"
 	@echo "                  (options of either demo: ./run demo-hosts DEMO_ARGS='--console-port 8090')"
 	@echo "make test   - install what the tests need, build the catkin workspace, run every test"
+	@echo "make compat - the compatibility matrix: each supported system's Python and libraries (tox.ini)"
 	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
 	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
 	@echo "make bench  - run the benchmarks and write docs/PERFORMANCE.md"
@@ -31,6 +32,9 @@ $(OVERLAY): $(shell find robotics_msgs rcm firos demo tests/ros_pkgs -name packa
 
 test: deps build
 	bash scripts/run-tests.sh $(PYTEST_ARGS)
+
+compat: deps build
+	bash scripts/compat/matrix.sh
 
 test-fast: build
 	bash scripts/run-tests.sh -m 'not slow' $(PYTEST_ARGS)

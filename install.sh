@@ -5,7 +5,9 @@
 # --non-interactive, the same answers from flags), the catkin workspace ~/rcmp_ws (with firos, rcm and
 # robotics_msgs unpacked into src/ on a master with FIWARE support) and the configuration file's content.
 # Everything that needs root (apt-get, /usr/local/bin/rcmp_n, the rcm_platform package, /opt/rcm-platform,
-# /etc/init.d/rcmpd) is done by sub_inst.sh, run through sudo when the user is not root.
+# /etc/init.d/rcmpd) is done by sub_inst.sh, run through sudo when the user is not root; sub_inst.sh also says
+# which ROS installation (its setup script) and which package names this machine gets. The workspace is built
+# inside that setup script's environment, so the workspace chains onto that ROS.
 # Run it again to change the configuration: the current values are the defaults.
 set -eo pipefail
 export LC_ALL=C
@@ -53,6 +55,9 @@ EOF
 
 (ext) configuration keys (written only when given; a re-run keeps the current ones):
   --vpn-interface IF  --vpn-address ADDRESS  --ic-port PORT  --ros-port-base PORT
+  --ros-setup FILE|none    the ROS installation's setup script, for the workspace build, the agent and its
+                           nodes (default: the first /opt/ros/*/setup.bash, noetic first; none: ROS is on the
+                           system's paths, as Debian's packages put it)
 EOF
     if [ "$ROLE" = master ]; then cat <<EOF
   --ext-interface IF  --ext-address ADDRESS  --ext-port PORT
@@ -66,7 +71,8 @@ EOF
   --service-name NAME      init script /etc/init.d/NAME (default rcmpd)
   --bin-dir DIR            where rcmp_n goes (default /usr/local/bin)
   --lib-dir DIR            where the rcm_platform package goes (default: /usr/bin/python3's site dist-packages)
-  --skip-deps              do not run apt-get (the dependencies are already installed)
+  --skip-deps              do not run apt-get: the dependencies are installed already, or ROS is a source
+                           build (give its setup script with --ros-setup)
   --dry-run                ask (or take) every answer, show the configuration and the steps, change nothing
   -h, --help               this text
 EOF
@@ -152,6 +158,14 @@ check_ifname() {
     if [[ "$1" =~ ^[A-Za-z0-9_.:-]{1,15}$ ]]; then echo "$1"
     else echo "'$1' is not a network interface name."; return 1; fi
 }
+check_ros_setup() {  # none, or the absolute path of a readable file
+    case "$1" in
+        none) echo none; return 0 ;;
+        /*) if [[ "$1" != *[[:cntrl:]]* ]] && [ -f "$1" ] && [ -r "$1" ]; then echo "$1"; return 0; fi ;;
+    esac
+    echo "'$1' is not a readable setup script given by its absolute path (like /opt/ros/noetic/setup.bash), nor none."
+    return 1
+}
 check_path() {
     case "$1" in
         /) echo "'/' cannot be used here."; return 1 ;;
@@ -184,6 +198,7 @@ while [ $# -gt 0 ]; do
     esac
     case "$opt" in
         --replace-ws|--start|--inbound-ports|--vpn-interface|--vpn-address|--ic-port|--ros-port-base|--home) ;;
+        --ros-setup) ;;
         --workspace|--bin-dir|--lib-dir|--service-name) ;;
         --fiware|--ext-interface|--ext-address|--ext-port|--vpn|--vpn-subnet|--vpn-port|--vpn-remote)
             [ "$ROLE" = master ] || usage_error "unknown option '$opt' for the rcm robot installer" ;;
@@ -201,6 +216,7 @@ while [ $# -gt 0 ]; do
         --vpn-address) set_opt vpn_address check_ipv4 "$opt" "$val" ;;
         --ic-port) set_opt ic_port check_port "$opt" "$val" ;;
         --ros-port-base) set_opt ros_port_base check_port "$opt" "$val" ;;
+        --ros-setup) set_opt ros_setup check_ros_setup "$opt" "$val" ;;
         --home) set_opt home check_path "$opt" "$val" ;;
         --workspace) set_opt workspace check_path "$opt" "$val" ;;
         --bin-dir) set_opt bin_dir check_path "$opt" "$val" ;;
@@ -241,7 +257,9 @@ VPN_DIR=$HOME_DIR/vpn
 WS=${OPT[workspace]:-$HOME/rcmp_ws}
 SERVICE=${OPT[service_name]:-rcmpd}
 BIN_DIR=${OPT[bin_dir]:-/usr/local/bin}
-LIB_DIR=${OPT[lib_dir]:-$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')}
+# the first site folder of the system's python: /usr/local/lib/python3.X/dist-packages on Debian and Ubuntu, on its
+# sys.path (Ubuntu 20.04's sysconfig names a folder that is not)
+LIB_DIR=${OPT[lib_dir]:-$(/usr/bin/python3 -c 'import site; print(site.getsitepackages()[0])')}
 if [ "$ROLE" = master ]; then CFG_FILE=$HOME_DIR/.init.cfg; else CFG_FILE=$HOME_DIR/init.cfg; fi
 
 # --- the current configuration gives the defaults of a re-run ---------------------------------------------------
@@ -296,14 +314,30 @@ else
 fi
 
 # (ext) keys: options first, then the current configuration; never asked
-for key in vpn_interface vpn_address ic_port ros_port_base ext_interface ext_address ext_port; do
+for key in vpn_interface vpn_address ic_port ros_port_base ext_interface ext_address ext_port ros_setup; do
     if [ -n "${OPT[$key]+set}" ]; then ANS[$key]=${OPT[$key]}; continue; fi
     case $key in
         vpn_address|ext_address) ANS[$key]=$(current "$key" check_ipv4) ;;
         ic_port|ros_port_base|ext_port) ANS[$key]=$(current "$key" check_port) ;;
+        ros_setup) ANS[$key]=$(current "$key" check_ros_setup) ;;
         *) ANS[$key]=$(current "$key" check_ifname) ;;
     esac
 done
+
+# the ROS installation: ros_setup, else the first /opt/ros/*/setup.bash (noetic first), else none (sub_inst.sh)
+ROS_SETUP=$("$HERE/sub_inst.sh" ros-setup "${ANS[ros_setup]}") || exit 2
+if [ -n "${ANS[ros_setup]}" ]; then
+    how="given as ros_setup"
+elif [ "$ROS_SETUP" != none ]; then
+    how="found in /opt/ros; --ros-setup chooses another, or none"
+else
+    how="no /opt/ros/*/setup.bash"
+fi
+if [ "$ROS_SETUP" = none ]; then
+    echo "ROS setup script: none ($how): ROS is on the system's paths, as Debian's packages put it"
+else
+    echo "ROS setup script: $ROS_SETUP ($how)"
+fi
 
 if [ "$ROLE" = master ]; then
     have_zips=yes
@@ -378,7 +412,7 @@ trap 'rm -f "$CFG_TMP"' EXIT
         echo "# .init.cfg: configuration of the rcm master, written by install.sh (run it again to change it)"
         echo "[main]"
         echo "inbound_open_ports=${ANS[inbound_open_ports]}"
-        keys="ext_interface ext_address ext_port vpn_interface vpn_address ic_port ros_port_base"
+        keys="ext_interface ext_address ext_port vpn_interface vpn_address ic_port ros_port_base ros_setup"
     else
         echo "# init.cfg: configuration of this rcm instance, written by install.sh (run it again to change it)"
         echo "[main]"
@@ -386,7 +420,7 @@ trap 'rm -f "$CFG_TMP"' EXIT
         echo "robot=${ANS[robot]}"
         [ -z "${ANS[ip_master]}" ] || echo "ip_master=${ANS[ip_master]}"
         [ -z "${ANS[inbound_open_ports]}" ] || echo "inbound_open_ports=${ANS[inbound_open_ports]}"
-        keys="vpn_interface vpn_address ic_port ros_port_base"
+        keys="vpn_interface vpn_address ic_port ros_port_base ros_setup"
     fi
     for key in $keys; do
         [ -z "${ANS[$key]}" ] || echo "$key=${ANS[$key]}"
@@ -421,13 +455,32 @@ vpn_steps() {  # what happens to the platform's VPN
 }
 
 if [ "$DRY_RUN" = yes ]; then
+    missing=
+    if [ "$SKIP_DEPS" = no ]; then
+        plan=$("$HERE/sub_inst.sh" deps "$ROLE" --ros-setup "$ROS_SETUP" --dry-run) || exit 2
+        grep -v '^Missing:' <<<"$plan" || true
+        missing=$(sed -n 's/^Missing: *//p' <<<"$plan")
+    fi
     echo "Dry run: nothing was changed. The installation would:"
-    [ "$SKIP_DEPS" = yes ] || echo "  - install the missing dependencies of the rcm $ROLE with apt-get"
+    if [ "$SKIP_DEPS" = yes ]; then
+        echo "  - not install dependencies (--skip-deps)"
+    elif [ -n "$missing" ]; then
+        echo "  - install the missing dependencies of the rcm $ROLE with apt-get: $missing"
+    else
+        echo "  - install no dependencies: everything the rcm $ROLE needs is installed"
+    fi
     if [ -d "$WS" ] && [ "${ANS[replace_ws]}" = yes ]; then echo "  - replace the workspace $WS"
     elif [ -d "$WS" ]; then echo "  - keep the workspace $WS"
     else echo "  - create the workspace $WS"; fi
     if [ "$ROLE" = master ] && [ "${ANS[fiware]}" = yes ]; then
-        echo "  - unpack ${COMPONENT_ZIPS[*]} into $WS/src and build it with catkin_make"
+        echo "  - unpack ${COMPONENT_ZIPS[*]} into $WS/src"
+    fi
+    if [ -f "$WS/devel/setup.bash" ] && [ "${ANS[replace_ws]}" = no ] && [ "${ANS[fiware]:-no}" = no ]; then
+        echo "  - keep the workspace's build"
+    elif [ "$ROS_SETUP" = none ]; then
+        echo "  - build the workspace with catkin_make"
+    else
+        echo "  - build the workspace with catkin_make in the environment of $ROS_SETUP"
     fi
     echo "  - install $BIN_DIR/rcmp_n, $LIB_DIR/rcm_platform, $HOME_DIR/rosconsole.config and /etc/init.d/$SERVICE"
     vpn_steps
@@ -447,7 +500,7 @@ as_root() {
 
 # --- 1. dependencies (root) ------------------------------------------------------------------------------------------
 if [ "$SKIP_DEPS" = no ]; then
-    as_root "$HERE/sub_inst.sh" deps "$ROLE"
+    as_root "$HERE/sub_inst.sh" deps "$ROLE" --ros-setup "$ROS_SETUP"
 fi
 
 # --- 2. the workspace (the installing user) -----------------------------------------------------------------------
@@ -469,10 +522,28 @@ if [ "$ROLE" = master ] && [ "${ANS[fiware]}" = yes ]; then
     done
 fi
 [ -f "$WS/devel/setup.bash" ] || build_needed=yes
+build_workspace() (  # a subshell: the ROS setup script's environment stays in it
+    export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH   # the system's python3 before any other (pyenv, venvs)
+    if [ "$ROS_SETUP" != none ]; then
+        set --            # a sourced catkin setup.bash hands the caller's arguments to its _setup_util.py
+        set +e +u
+        # shellcheck disable=SC1090
+        source "$ROS_SETUP" || { echo "$PROG: error: $ROS_SETUP failed" >&2; exit 1; }
+        set -e
+    fi
+    if ! command -v catkin_make >/dev/null; then
+        echo "$PROG: error: catkin_make was not found (ROS setup script: $ROS_SETUP): install ROS, or give" \
+             "its setup script with --ros-setup; nothing was installed" >&2
+        exit 3
+    fi
+    cd "$WS"
+    catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 -DCATKIN_ENABLE_TESTING=OFF >"$WS/build.log" 2>&1
+)
 if [ "$build_needed" = yes ]; then
     echo "Building the workspace $WS with catkin_make (log: $WS/build.log)"
-    if ! (cd "$WS" && PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH catkin_make -DPYTHON_EXECUTABLE=/usr/bin/python3 \
-            -DCATKIN_ENABLE_TESTING=OFF >"$WS/build.log" 2>&1); then
+    if build_workspace; then :; else
+        rc=$?
+        [ "$rc" -ne 3 ] || exit 1
         tail -n 30 "$WS/build.log" >&2
         die "catkin_make failed in $WS; nothing was installed (full log: $WS/build.log)"
     fi

@@ -1,8 +1,15 @@
 #!/bin/bash
 # sub_inst.sh: the privileged half of install.sh (run as root, through sudo when needed).
 #
-# Owns everything of the installation that lives outside the installing user's home:
-#   sub_inst.sh deps master|robot        apt-get install the missing dependencies (installed ones are kept)
+# Owns everything of the installation that lives outside the installing user's home, and what the installation
+# finds on the machine: the system (/etc/os-release), the ROS installation and the dependencies it needs.
+#   sub_inst.sh ros-setup [VALUE]        print the setup script of the ROS installation to use: VALUE (a file, or
+#                                        none), else the first /opt/ros/*/setup.bash (noetic first), else none
+#                                        (ROS on the system's paths, as Debian's packages put it). No root needed.
+#   sub_inst.sh deps master|robot [--ros-setup FILE|none] [--dry-run]
+#                                        say which system and which package names it chose, then apt-get install
+#                                        the missing dependencies (installed ones are kept); with --dry-run only
+#                                        list the missing ones ("Missing: NAME..."), which needs no root
 #   sub_inst.sh install --role R --src DIR --home DIR --bin-dir DIR --lib-dir DIR --service-name NAME
 #                       --workspace DIR --config FILE
 #                       [--vpn-subnet CIDR --vpn-port N [--vpn-remote HOST]]   (master: create the VPN)
@@ -21,36 +28,128 @@ PROG=sub_inst.sh
 export PATH=/usr/bin:/bin:/usr/sbin:/sbin:$PATH
 
 die() { echo "$PROG: error: $1" >&2; exit "${2:-1}"; }
-[ "$(id -u)" -eq 0 ] || die "must run as root (install.sh runs it through sudo)"
+need_root() { [ "$(id -u)" -eq 0 ] || die "must run as root (install.sh runs it through sudo)"; }
 
-# ROS 1 from Debian (the ROS part of scripts/install-deps.sh), the agent's own needs, and the tools the
-# installer and the seed guide's checks use. python3-twisted on every agent: our robot agent speaks the
-# agent protocol through Twisted too (docs/INSTALL.md).
+# The dependencies come from one source of ROS packages, never two (their Python libraries conflict):
+# - ROS on the system's paths (no setup script): the system's own packages. Debian's names below (the ROS list of
+#   scripts/install-deps.sh); Ubuntu's own archive uses the same names.
 ROS_PACKAGES=(ros-core rosbash rospack-tools python3-rospy python3-roslaunch python3-rosmaster python3-rosgraph
   python3-rostopic python3-rosnode python3-rosservice python3-rosparam python3-std-msgs python3-geometry-msgs
   python3-sensor-msgs python3-genpy python3-genmsg catkin python3-catkin-pkg ros-message-generation
   ros-message-runtime libstd-msgs-dev libgeometry-msgs-dev libroscpp-dev cmake g++)
-AGENT_PACKAGES=(python3-twisted python3-netifaces python3-yaml openvpn unzip iproute2)
+# - ROS from ROS's own apt repository in /opt/ros/DISTRO (Ubuntu 20.04 with Noetic): the same pieces under ROS's
+#   names, ros-DISTRO-NAME for each NAME below, plus catkin's Python library, which that repository ships as
+#   python3-catkin-pkg (its C++ headers come with the message and roscpp packages).
+ROS_REPOSITORY_PACKAGES=(ros-core rosbash rospack rospy roslaunch rosmaster rosgraph rostopic rosnode rosservice
+  rosparam std-msgs geometry-msgs sensor-msgs genpy genmsg catkin message-generation message-runtime roscpp)
+ROS_REPOSITORY_EXTRA=(python3-catkin-pkg cmake g++)
+# - a ROS set up by a script elsewhere (a source build): its packages are the administrator's; none installed here.
+# The agent's own needs and the tools the installer and the seed guide's checks use, the same names on Debian and
+# Ubuntu. python3-twisted on every agent: our robot agent speaks the agent protocol through Twisted too
+# (docs/INSTALL.md); a robot needs nothing of the master's (no sqlite3 tool).
+AGENT_PACKAGES=(python3-twisted python3-netifaces python3-yaml python3-cryptography openvpn unzip iproute2)
 MASTER_PACKAGES=(sqlite3)
+# the systems this release is tested on (README, "Supported systems"): ID VERSION_ID
+SUPPORTED_SYSTEMS=("debian 12" "debian 13" "ubuntu 20.04" "ubuntu 22.04" "ubuntu 24.04")
 
-do_deps() {
-    local role=$1 packages missing=()
+os_release() {  # os_release KEY: KEY's value in /etc/os-release, read as KEY=value lines (never run)
+    local file=/etc/os-release line value=
+    [ -r "$file" ] || file=/usr/lib/os-release
+    [ -r "$file" ] || return 0
+    while IFS= read -r line || [ -n "$line" ]; do
+        case "$line" in
+            "$1="*) value=${line#*=}; value=${value#[\"\']}; value=${value%[\"\']} ;;
+        esac
+    done <"$file"
+    printf '%s' "$value"
+}
+
+describe_system() {  # one line: the system, and whether it is one this release is tested on
+    local id version name
+    id=$(os_release ID) version=$(os_release VERSION_ID) name=$(os_release PRETTY_NAME)
+    name=${name:-${id:-an unknown system} $version}
+    local s
+    for s in "${SUPPORTED_SYSTEMS[@]}"; do
+        if [ "$s" = "$id $version" ]; then echo "System: $name"; return 0; fi
+    done
+    echo "System: $name (not one of the systems this release is tested on: Debian 12 and 13, Ubuntu 20.04," \
+         "22.04 and 24.04; continuing with the packages below)"
+}
+
+do_ros_setup() {  # do_ros_setup [VALUE]: see the usage above
+    local value=${1:-} f
+    case "$value" in
+        none) echo none; return 0 ;;
+        '') ;;
+        /*)
+            [[ "$value" != *[[:cntrl:]]* ]] && [ -f "$value" ] && [ -r "$value" ] \
+                || die "ros_setup: '$value' is not a readable file" 2
+            echo "$value"; return 0 ;;
+        *) die "ros_setup: '$value' is neither an absolute path nor none" 2 ;;
+    esac
+    for f in /opt/ros/noetic/setup.bash /opt/ros/*/setup.bash; do
+        if [ -f "$f" ]; then echo "$f"; return 0; fi
+    done
+    echo none
+}
+
+do_deps() {  # do_deps ROLE [--ros-setup FILE|none] [--dry-run]
+    local role=$1 setup='' dry_run=no packages=() missing=() p distro
+    shift
+    while [ $# -gt 0 ]; do
+        case "$1" in
+            --ros-setup) [ $# -ge 2 ] || die "deps: --ros-setup needs a value" 2; setup=$(do_ros_setup "$2"); shift 2 ;;
+            --dry-run) dry_run=yes; shift ;;
+            *) die "deps: unknown option '$1'" 2 ;;
+        esac
+    done
+    [ -n "$setup" ] || setup=$(do_ros_setup)
     case "$role" in
-        master) packages=("${ROS_PACKAGES[@]}" "${AGENT_PACKAGES[@]}" "${MASTER_PACKAGES[@]}") ;;
-        robot) packages=("${ROS_PACKAGES[@]}" "${AGENT_PACKAGES[@]}") ;;
+        master|robot) ;;
         *) die "deps: role must be master or robot, not '$role'" 2 ;;
     esac
+    describe_system
+    if [ "$setup" = none ]; then
+        packages=("${ROS_PACKAGES[@]}")
+        echo "ROS packages: the system's own, as ROS is on the system's paths (ros-core, python3-rospy, ...)"
+    elif [[ "$setup" =~ ^/opt/ros/([a-z][a-z0-9_]*)/setup\.bash$ ]]; then
+        distro=${BASH_REMATCH[1]}
+        for p in "${ROS_REPOSITORY_PACKAGES[@]}"; do packages+=("ros-$distro-$p"); done
+        packages+=("${ROS_REPOSITORY_EXTRA[@]}")
+        echo "ROS packages: ROS's own for $distro, from ROS's apt repository (ros-$distro-rospy, ...);" \
+             "none of the system's ROS packages"
+    else
+        echo "ROS packages: none ($setup is not a ROS from packages: what it lacks is yours to build);" \
+             "only the agent's own dependencies"
+    fi
+    packages+=("${AGENT_PACKAGES[@]}")
+    [ "$role" = robot ] || packages+=("${MASTER_PACKAGES[@]}")
+    local installed
+    # (dpkg-query fails for names it has never heard of: that only means they are missing)
+    installed=" $({ dpkg-query -W -f='${Package} ${Status}\n' "${packages[@]}" 2>/dev/null || true; } \
+                  | sed -n 's/^\([^ ]*\) install ok installed$/\1/p' | tr '\n' ' ') "
     for p in "${packages[@]}"; do
-        dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing+=("$p")
+        case "$installed" in *" $p "*) ;; *) missing+=("$p") ;; esac
     done
+    if [ "$dry_run" = yes ]; then
+        echo "Missing: ${missing[*]}"
+        return 0
+    fi
     if [ ${#missing[@]} -eq 0 ]; then
         echo "Dependencies: all ${#packages[@]} packages are already installed"
         return 0
     fi
+    need_root
     echo "Dependencies: installing ${missing[*]} with apt-get"
     export DEBIAN_FRONTEND=noninteractive
     apt-get update -qq || die "apt-get update failed"
-    apt-get install -y -qq --no-install-recommends "${missing[@]}" || die "apt-get install failed"
+    if ! apt-get install -y -qq --no-install-recommends "${missing[@]}"; then
+        if [ -n "$distro" ]; then
+            die "apt-get could not install ${missing[*]}: is ROS's apt repository for $distro set up" \
+                "(docs/INSTALL.md)? For a ROS built from source, run install.sh with --skip-deps"
+        fi
+        die "apt-get install failed"
+    fi
 }
 
 abs_dir() {  # abs_dir OPTION VALUE: an absolute path other than /
@@ -194,8 +293,10 @@ do_service() {  # start|restart --service-name NAME
 }
 
 case "${1:-}" in
-    deps) [ $# -eq 2 ] || die "usage: sub_inst.sh deps master|robot" 2; do_deps "$2" ;;
-    install) shift; do_install "$@" ;;
-    start|restart) do_service "$@" ;;
-    *) die "usage: sub_inst.sh deps|install|start|restart ... (run by install.sh)" 2 ;;
+    ros-setup) [ $# -le 2 ] || die "usage: sub_inst.sh ros-setup [FILE|none]" 2; do_ros_setup "${2:-}" ;;
+    deps) [ $# -ge 2 ] || die "usage: sub_inst.sh deps master|robot [--ros-setup FILE|none] [--dry-run]" 2
+          shift; do_deps "$@" ;;
+    install) need_root; shift; do_install "$@" ;;
+    start|restart) need_root; do_service "$@" ;;
+    *) die "usage: sub_inst.sh ros-setup|deps|install|start|restart ... (run by install.sh)" 2 ;;
 esac

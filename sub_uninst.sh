@@ -25,7 +25,7 @@ done
 # where things are: the settings written at installation, else the standard places
 RCMP_BIN=/usr/local/bin/rcmp_n
 RCMP_HOME=/opt/rcm-platform
-RCMP_PYLIB=$(/usr/bin/python3 -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+RCMP_PYLIB=$(/usr/bin/python3 -c 'import site; print(site.getsitepackages()[0])')  # install.sh's default
 if [ ! -r "/etc/default/$SERVICE" ] && [ "$SERVICE" != rcmpd ]; then
     # an (ext) installation's places are known only from its settings: never guess the standard ones
     RCMP_BIN='' RCMP_HOME='' RCMP_PYLIB=''

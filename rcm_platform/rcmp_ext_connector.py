@@ -33,7 +33,7 @@ from twisted.application import service
 from twisted.internet import defer, endpoints, protocol, task, threads
 from twisted.web import http, resource, server
 
-from .rcmp_inter_communication import ConnectionCaps
+from .rcmp_inter_communication import ConnectionCaps, json_depth
 from .rcmp_command import (BadRequest, CommandError, Forbidden, MethodNotAllowed, NotFound, TooLarge,
                            Unauthorized, UnsupportedMediaType)
 
@@ -185,20 +185,6 @@ class RdapiRequest(server.Request):
 
 
 _TOO_DEEP = object()
-
-
-def _depth(value):
-    """How deeply ``value`` (a decoded JSON value) nests lists and objects; counted without recursion."""
-    deepest, pending = 0, [(value, 1)]
-    while pending:
-        item, level = pending.pop()
-        if isinstance(item, dict):
-            item = list(item.values())
-        if isinstance(item, list):
-            deepest = max(deepest, level)
-            if level <= MAX_JSON_DEPTH:
-                pending.extend((child, level + 1) for child in item)
-    return deepest
 
 
 class Route:
@@ -457,7 +443,7 @@ class Rdapi(resource.Resource):
             body = _TOO_DEEP
         except ValueError as exc:
             raise BadRequest(f"the request body is not valid JSON: {exc}") from None
-        if body is _TOO_DEEP or _depth(body) > MAX_JSON_DEPTH:
+        if body is _TOO_DEEP or json_depth(body, MAX_JSON_DEPTH) > MAX_JSON_DEPTH:
             raise BadRequest(f"the request body is nested more than {MAX_JSON_DEPTH} levels deep")
         if not isinstance(body, dict):
             raise BadRequest("the request body must be a JSON object")

@@ -46,6 +46,7 @@ log = logging.getLogger("rcmp.ic")
 
 PROTOCOL_VERSION = 1
 MAX_FRAME = 1024 * 1024          # bytes of JSON in one frame
+MAX_FRAME_DEPTH = 16             # levels of JSON nesting in one frame (a message uses about 5)
 MAX_FRAME_BEFORE_ADMISSION = 4096           # bytes of JSON in one frame from a peer not admitted yet
 MAX_BYTES_BEFORE_ADMISSION = 64 * 1024      # bytes a peer may send in all before it is admitted
 MAX_PER_ADDRESS = 8              # connections a listener accepts from one source address
@@ -95,6 +96,21 @@ def encode_frame(message):
     return data
 
 
+def json_depth(value, limit):
+    """How deeply ``value`` (a decoded JSON value) nests lists and objects, counted without recursion and
+    without looking further down than ``limit + 1`` levels (enough to tell that it is over ``limit``)."""
+    deepest, pending = 0, [(value, 1)]
+    while pending:
+        item, level = pending.pop()
+        if isinstance(item, dict):
+            item = list(item.values())
+        if isinstance(item, list):
+            deepest = max(deepest, level)
+            if level <= limit:
+                pending.extend((child, level + 1) for child in item)
+    return deepest
+
+
 def decode_frame(data):
     """Parse one frame's bytes into a message dict; ProtocolError when it cannot be understood at all."""
     try:
@@ -103,6 +119,8 @@ def decode_frame(data):
         raise ProtocolError(f"frame is not UTF-8 JSON: {exc}") from None
     except RecursionError:
         raise ProtocolError("frame is JSON nested too deeply to parse") from None
+    if json_depth(message, MAX_FRAME_DEPTH) > MAX_FRAME_DEPTH:   # Python 3.13 parses what 3.12 refused
+        raise ProtocolError(f"frame is JSON nested too deeply (more than {MAX_FRAME_DEPTH} levels)")
     if not isinstance(message, dict):
         raise ProtocolError("frame is not a JSON object")
     msg_id = message.get("id")

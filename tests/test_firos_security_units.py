@@ -16,7 +16,7 @@ sys.path.insert(0, os.path.join(ROOT, "firos", "scripts"))
 import core  # noqa: E402
 from include import config as cfg  # noqa: E402
 from include import server as http  # noqa: E402
-from include.whitelist import Whitelist, WhitelistError, costly_shape, validate  # noqa: E402
+from include.whitelist import Whitelist, WhitelistError, costly_shape, sre_parse, validate  # noqa: E402
 from tests.support.firos import write_config  # noqa: E402
 from tests.support.polling import wait_until  # noqa: E402
 
@@ -34,7 +34,6 @@ from tests.support.polling import wait_until  # noqa: E402
     ("(cmd|odom)/.*", None), ("(a|b)*", None), ("[ab]*c", None), ("a{1,5}b{1,5}.*", None), ("p1", None),
 ])
 def test_costly_shapes(pattern, refused):
-    import re._parser as sre_parse
     problem = costly_shape(sre_parse.parse(pattern))
     if refused is None:
         assert problem is None

@@ -131,7 +131,8 @@ def test_v2_keeps_numbers_booleans_null_and_structure():
 def test_bad_values_get_a_clear_error(function, value, message):
     with pytest.raises(ne.NgsiEncodingError) as caught:
         function(value)
-    assert str(caught.value) == message
+    # Python 3.12+ adds the offending value to json's own messages ("...not JSON compliant: nan")
+    assert str(caught.value) == message or str(caught.value).startswith(message + ": "), str(caught.value)
 
 
 def test_v1_decode_survives_absurd_nesting():

@@ -183,10 +183,19 @@ def iso_time(epoch):
     return moment.strftime("%Y-%m-%dT%H:%M:%S.") + f"{moment.microsecond // 1000:03d}Z"
 
 
+_ISO_FRACTION = re.compile(r"T\d\d:\d\d:\d\d\.(\d+)")
+
+
 def parse_iso_time(text):
     """An ISO 8601 date or date-time (naive means UTC) → seconds since the epoch; ValueError if malformed."""
     if not isinstance(text, str) or not text:
         raise ValueError("not a date")
+    # Python 3.11 reads any ISO 8601 date-time; earlier ones no "Z" suffix and only 3 or 6 digits of fraction
+    if text[-1] in "Zz":
+        text = text[:-1] + "+00:00"
+    fraction = _ISO_FRACTION.search(text)
+    if fraction:
+        text = text[:fraction.start(1)] + (fraction.group(1) + "000000")[:6] + text[fraction.end(1):]
     moment = datetime.fromisoformat(text)
     if moment.tzinfo is None:
         moment = moment.replace(tzinfo=timezone.utc)

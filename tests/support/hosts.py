@@ -55,9 +55,9 @@ import os
 import re
 import shutil
 import signal
+import site
 import stat
 import subprocess
-import sysconfig
 import tempfile
 import threading
 
@@ -70,12 +70,12 @@ VPN_SUBNET = "198.51.100.0/24"
 # what an rcm-platform installer writes to (section 5 of CONTRACTS.md), for hosts whose installed files differ
 INSTALL_PATHS = ("/usr/local", "/etc", "/root", "/var/log", "/run")
 # folders an rcm-platform installer writes whose machine content a host does not need: replaced by empty ones
-INSTALL_FRESH = ("/opt", sysconfig.get_paths()["purelib"])
+INSTALL_FRESH = ("/opt", site.getsitepackages()[0])
 # what an rcm-platform installation of this machine (tests/system/test_install.py may be running) places below those: a
 # host never sees it, so its own installation starts from nothing (whiteouts in the overlay; the rc?.d folders
 # start empty, as update-rc.d's link names vary)
 RCM_INSTALLATION = ("/opt/rcm-platform", "/usr/local/bin/rcmp_n",
-                    os.path.join(sysconfig.get_paths()["purelib"], "rcm_platform"),
+                    os.path.join(site.getsitepackages()[0], "rcm_platform"),
                     "/etc/init.d/rcmpd", "/etc/default/rcmpd", "/run/rcmpd.pid", "/root/rcmp_ws")
 EMPTY_DIRS = tuple(f"/etc/rc{level}.d" for level in "0123456S")
 HOST_NAME = re.compile(r"^[a-z][a-z0-9]{0,11}$")

@@ -36,7 +36,7 @@ pytestmark = [
 
 
 def system_site():
-    out = subprocess.run([PYTHON, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+    out = subprocess.run([PYTHON, "-c", "import site; print(site.getsitepackages()[0])"],
                          capture_output=True, text=True, check=True)
     return out.stdout.strip()
 

@@ -261,7 +261,7 @@ def test_root_daemon_keeps_away_from_a_user_owned_workspace(lan, tmp_path):
         assert file_mode(host, "/opt/rcm-platform/robotics_data.db") == (0, 0o640)
 
         # what the root daemon runs or reads must be root's alone: each change below makes start refuse
-        site = host.run([PY, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"]).stdout.strip()
+        site = host.run([PY, "-c", "import site; print(site.getsitepackages()[0])"]).stdout.strip()
         attacks = [
             (["chown", "alice", "/etc/default/rcmpd"], ["chown", "root", "/etc/default/rcmpd"],
              "refusing /etc/default/rcmpd: /etc/default/rcmpd belongs to uid"),

@@ -32,7 +32,8 @@ VPN_CONFIG_QUESTION = ("OpenVPN client file of this machine, from 'rcmp_n vpn cl
 def make_package(base, role, component_zips=True):
     pkg = base / f"rcm_platform_{role}"
     (pkg / "rcm_platform").mkdir(parents=True)
-    shutil.copy(os.path.join(ROOT, "install.sh"), pkg / "install.sh")
+    for script in ("install.sh", "sub_inst.sh"):  # sub_inst.sh finds the ROS installation and the dependencies
+        shutil.copy(os.path.join(ROOT, script), pkg / script)
     (pkg / "rcm_platform" / "__init__.py").write_text("")
     if role == "master":
         (pkg / "rcm_platform" / "rcmp_ext_connector.py").write_text("")

@@ -7,6 +7,8 @@ Settings field it fills, which parser checks it); the few rules between keys fol
 or the network.
 """
 
+from __future__ import annotations
+
 import ipaddress
 import json
 import os

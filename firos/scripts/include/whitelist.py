@@ -32,7 +32,10 @@ MAX_PATTERN = 256
 MAX_NAME = 256       # robot and topic names longer than this match nothing
 MAX_COST = (MAX_NAME + 1) ** 2   # the product of the repetitions' widths: two open-ended ones at most
 _PLAIN_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
-_REPEATS = (sre.MAX_REPEAT, sre.MIN_REPEAT, sre.POSSESSIVE_REPEAT)
+# possessive repetitions and atomic groups are Python 3.11's; an older parser never produces them
+_ATOMIC_GROUP = getattr(sre, "ATOMIC_GROUP", None)
+_REPEATS = tuple(op for op in (sre.MAX_REPEAT, sre.MIN_REPEAT, getattr(sre, "POSSESSIVE_REPEAT", None))
+                 if op is not None)
 
 
 class WhitelistError(ValueError):
@@ -103,7 +106,7 @@ def costly_shape(tree):
                 problem = walk(av[-1], repeated)
             elif op in (sre.ASSERT, sre.ASSERT_NOT):
                 problem = walk(av[1], repeated)
-            elif op == sre.ATOMIC_GROUP:
+            elif op == _ATOMIC_GROUP:
                 problem = walk(av, repeated)
             elif op in (sre.GROUPREF, sre.GROUPREF_EXISTS):
                 return "a backreference"
