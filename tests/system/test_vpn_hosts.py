@@ -147,7 +147,7 @@ def test_robots_pair_over_the_vpn_with_default_interfaces(platform):
                    message=f"{name}'s r_talker to register with its space's ROS master")
         assert node_uri().startswith(f"http://{address}:"), (name, node_uri())
     # vpn list on the master says who is connected
-    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 connected\n"
+    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected robot\nrobot2 198.51.100.3 connected robot\n"
 
 
 def test_the_seeds_curl_commands_answer_on_the_masters_eth0(platform):
@@ -291,7 +291,7 @@ def test_a_revoked_robot_is_cut_off_and_stays_off(platform):
                message="robot2's OpenVPN to be refused for its revoked certificate")
     assert p.state("robot2") == (False, False)
     assert p.robots["robot2"].vpn_address() is None or "robot2 connected" not in p.master.log_text()[-2000:]
-    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 revoked\n"
+    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected robot\nrobot2 198.51.100.3 revoked robot\n"
     assert p.state("robot1") == (True, True)
 
 
