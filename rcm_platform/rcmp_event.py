@@ -1,8 +1,9 @@
 """The messages agents exchange and the two sides' handlers: ``MasterAgent`` and ``RobotAgent``.
 
 Owns: the table of ops (who serves each, required fields and their types) and their validation; the master's
-side (hello → accepted / refused against the robotics data, one session per connected robot, heartbeats, the
-service space created on connection through the ``ServiceSpaceManager`` and torn down when the robot goes,
+side (hello → accepted / refused against the robotics data and the VPN's certificates and their roles, one
+session per connected robot, heartbeats, the service space created on connection through the
+``ServiceSpaceManager`` and torn down when the robot goes,
 ``disconnect`` for the RDAPI's r_provisioning) and the robot's side (wait for the platform address, hello with
 backoff, serve ``start_items``/``stop_items`` with the ``ItemRunner``, report item exits, stop its
 robot-side items and say hello again when the master is lost). The wire format is ``rcmp_inter_communication``'s;
@@ -505,7 +506,9 @@ class MasterAgent(service.Service):
         if certificate is not None and certificate.role != role:
             other = "a server VM (robot=no)" if certificate.role == "server" else "a robot"
             fix = (f"issue it a server certificate on the master: rcmp_n vpn client {name} --server"
-                   if role == "server" else "it may say hello only as a server VM")
+                   if role == "server" else
+                   f"to make it a robot, issue it a robot certificate on the master: rcmp_n vpn client {name} "
+                   f"--change-role")
             self._refused_once("wrong_role", name, peer, "refused hello as a %s for %s from %s: its VPN certificate "
                                "is a %s certificate", role, name, peer.remote, certificate.role)
             raise ic.Refused(f"{name!r} holds a {certificate.role} certificate, which lets it join only as {other}, "
