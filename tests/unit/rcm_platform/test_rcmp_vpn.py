@@ -12,6 +12,7 @@ import os
 
 import pytest
 from cryptography import x509
+from cryptography.hazmat.backends import default_backend
 from cryptography.x509.oid import NameOID
 
 from rcm_platform import rcmp_node, rcmp_vpn
@@ -44,7 +45,7 @@ def inline(text, tag):
 
 
 def certificate(text):
-    return x509.load_pem_x509_certificate(inline(text, "cert").encode())
+    return x509.load_pem_x509_certificate(inline(text, "cert").encode(), default_backend())   # cryptography 2.8 too
 
 
 def subject(cert, oid):
