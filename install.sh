@@ -43,9 +43,10 @@ EOF
     else cat <<EOF
   --robot yes|no           this machine is a robot (no: a server virtual machine) (default yes)
   --name NAME              platform instance name, as provisioned on the master (default: host name)
-  --vpn-config FILE        the client file 'rcmp_n vpn client NAME' wrote on the master: the agent runs the
-                           platform's VPN with it (installed as HOME/vpn/client.conf); 'none': the VPN is the
-                           administrator's (default: none, or keep the one installed)
+  --vpn-config FILE        the client file 'rcmp_n vpn client NAME' (a server VM: 'rcmp_n vpn client NAME
+                           --server') wrote on the master: the agent runs the platform's VPN with it (installed
+                           as HOME/vpn/client.conf); 'none': the VPN is the administrator's (default: none, or
+                           keep the one installed)
   --ip-master ADDRESS      the master's VPN address (default: this machine's VPN address, last octet 1)
 EOF
     fi
@@ -139,7 +140,8 @@ check_host() {
 }
 check_vpn_config() {  # none, keep (when one is installed), or a client file written by 'rcmp_n vpn client'
     case "$1" in
-        none|keep) echo "$1"; return 0 ;;
+        none) echo "$1"; return 0 ;;
+        keep) check_vpn_role "${VPN_DIR:-}/client.conf" "the installed client file" || return 1; echo "$1"; return 0 ;;
     esac
     local f=$1
     [[ "$f" = /* ]] || f=$PWD/$f
@@ -148,7 +150,22 @@ check_vpn_config() {  # none, keep (when one is installed), or a client file wri
         echo "'$1' is not an OpenVPN client file written by 'rcmp_n vpn client NAME' (client, <cert>, <key>)."
         return 1
     fi
+    check_vpn_role "$f" "'$1'" || return 1
     echo "$f"
+}
+check_vpn_role() {  # FILE WHAT: once the machine's kind is known, its client file must hold a certificate for it
+    local role what
+    [ -n "${ANS[robot]:-}" ] && [ -r "$1" ] || return 0
+    role=$(sed -n 's/^# Certificate role: \([a-z]*\)$/\1/p' "$1" | head -n 1)
+    if [ "${ANS[robot]}" = no ] && [ "$role" != server ]; then
+        if [ -n "$role" ]; then what="a robot's certificate"; else what="a certificate issued before certificate roles, which counts as a robot's"; fi
+        echo "$2 holds $what; a server VM needs a server certificate: on the master, 'rcmp_n vpn client NAME --server -o FILE'."
+        return 1
+    fi
+    if [ "${ANS[robot]}" = yes ] && [ "$role" = server ]; then
+        echo "$2 holds a server VM's certificate; a robot needs a robot certificate: on the master, 'rcmp_n vpn client NAME -o FILE'."
+        return 1
+    fi
 }
 check_name() {
     if [[ "$1" =~ ^[A-Za-z][A-Za-z0-9_]*$ ]]; then echo "$1"
@@ -378,7 +395,10 @@ else
     fi
     ask name check_name "$name_default" "Name of this platform instance (as provisioned on the master)$(with_default "$name_default")"
     if [ -e "$VPN_DIR/client.conf" ]; then vpn_default=keep; else vpn_default=none; fi
-    ask vpn_config check_vpn_config "$vpn_default" "OpenVPN client file of this machine, from 'rcmp_n vpn client NAME' on the master (none: you run the VPN yourself)$(with_default "$vpn_default")"
+    if [ "${ANS[robot]}" = no ]; then issue="rcmp_n vpn client NAME --server"; else issue="rcmp_n vpn client NAME"; fi
+    ask vpn_config check_vpn_config "$vpn_default" "OpenVPN client file of this machine, from '$issue' on the master (none: you run the VPN yourself)$(with_default "$vpn_default")"
+    # an option (read before the machine's kind was known) or a default taken without asking: checked for its role
+    msg=$(check_vpn_config "${ANS[vpn_config]}") || usage_error "--vpn-config: $msg"
     if [ "${ANS[vpn_config]}" = keep ] && [ ! -e "$VPN_DIR/client.conf" ]; then
         die "--vpn-config keep: no client file is installed in $VPN_DIR" 2
     fi

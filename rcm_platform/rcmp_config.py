@@ -73,6 +73,9 @@ class Config:
     ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit)
     ic_max_per_address: Optional[int] = None     # (ext) agent-port connections from one address (None: 8)
     max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
+    servers: Optional[dict] = None     # (ext) master: server VM names allowed (name -> its only address, or None);
+                                       # None: no list (any name that is not a robot's; with a managed VPN, server
+                                       # certificates); {}: no server VM at all
 
 
 def make_config(role, home, config_file=None, **values):
@@ -187,6 +190,22 @@ def _parse_origins(value):
     return tuple(origins)
 
 
+def _parse_servers(value):
+    """``vm1, vm2@198.51.100.7``: the names of the server VMs that may join, each optionally with the one address
+    its hello must come from; an empty value lets none join."""
+    servers = {}
+    for part in value.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        name, at, address = part.partition("@")
+        name = _parse_name(name)
+        if name in servers:
+            raise ValueError(f"server {name} is listed twice: {value[:200]!r}")
+        servers[name] = _parse_ipv4(address) if at else None
+    return servers
+
+
 def _parse_user(value):
     value = value.strip()
     if not re.match(r"[a-z_][a-z0-9_-]{0,31}\Z", value):
@@ -218,6 +237,7 @@ KEYS = {
     "ic_max_connections": (_int_parser(1, 100000), ("master",)),
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
     "run_as": (_parse_user, AGENT_ROLES),
+    "servers": (_parse_servers, ("master",)),
 }
 
 

@@ -1,8 +1,9 @@
 """The messages agents exchange and the two sides' handlers: ``MasterAgent`` and ``RobotAgent``.
 
 Owns: the table of ops (who serves each, required fields and their types) and their validation; the master's
-side (hello → accepted / refused against the robotics data, one session per connected robot, heartbeats, the
-service space created on connection through the ``ServiceSpaceManager`` and torn down when the robot goes,
+side (hello → accepted / refused against the robotics data and the VPN's certificates and their roles, one
+session per connected robot, heartbeats, the service space created on connection through the
+``ServiceSpaceManager`` and torn down when the robot goes,
 ``disconnect`` for the RDAPI's r_provisioning) and the robot's side (wait for the platform address, hello with
 backoff, serve ``start_items``/``stop_items`` with the ``ItemRunner``, report item exits, stop its
 robot-side items and say hello again when the master is lost). The wire format is ``rcmp_inter_communication``'s;
@@ -41,6 +42,8 @@ TAILS_TIMEOUT = 5.0               # seconds the master waits for the tails of a 
 MAX_TAIL_LINES = 50              # lines of each item's log an item_tails answer holds at most
 MAX_TAIL_CHARS = 8192            # characters of each tail, the last ones kept
 LOGGED_TEXT = 200                # characters of a peer's free text (reasons) that go into the log
+REFUSAL_QUIET = 3600.0           # seconds during which the same agent refused for the same reason is not logged again
+MAX_REFUSALS_REMEMBERED = 1024   # (code, name, address) kept for that
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
 
@@ -193,12 +196,16 @@ class MasterAgent(service.Service):
     space still waiting to be built is described as such; ``rcmp_service_command`` renders both);
     ``remove(pi_name, reason, remove)`` ends a robot's session and removes its provisioning under the robot's
     lock (the RDAPI's r_provisioning); ``disconnect(pi_name, reason)`` only ends the session.
-    ``expected_address(name) -> str | None`` (optional) is the address a hello naming ``name`` must come from
-    (the managed VPN's), or None when there is no such rule for ``name``. ``address()`` gives the platform
-    address to listen on (None while the VPN has none). ``rcmp_node`` builds them and passes them in.
+    ``certificate_of(name)`` (optional) is what the managed VPN says of ``name``: None without a managed VPN,
+    else an object with ``address`` (the only address a hello naming it may come from; None: no address is its
+    own, ``missing`` says why), ``role`` (``robot`` or ``server``: what its certificate lets it say hello as)
+    and ``revoked`` (``rcmp_vpn.certificate_of``). ``address()`` gives the platform address to listen on (None
+    while the VPN has none). ``rcmp_node`` builds them and passes them in.
 
     Admission of a hello (docs/PROTOCOL.md, docs/SECURITY.md): the name is checked against the name rule, then
-    against ``expected_address`` (``wrong_address``); then, under the robot's lock, its provisioning
+    with a managed VPN against its certificate's address (``wrong_address``) and role (``wrong_role``: a robot's
+    certificate cannot say hello as a server VM, nor a server's as a robot), and a server VM's name against the
+    ``servers`` allow-list when it is set (``wrong_role``); then, under the robot's lock, its provisioning
     (``not_provisioned``) and its live session (``in_use`` when a session heard from within the heartbeat window
     comes from another source address). Space creation is queued after the answer: at most
     ``max_starting_spaces`` are built at once, the others wait in arrival order.
@@ -206,9 +213,9 @@ class MasterAgent(service.Service):
 
     name = "ic-master"
 
-    def __init__(self, config, data, table, reactor, public_ip, spaces, address=None, expected_address=None):
+    def __init__(self, config, data, table, reactor, public_ip, spaces, address=None, certificate_of=None):
         self.config = config
-        self.expected_address = expected_address   # name -> the only address a hello for it may come from, or None
+        self.certificate_of = certificate_of       # name -> what the managed VPN says of it, or None
         self.data = data
         self.table = table
         self.reactor = reactor
@@ -230,6 +237,7 @@ class MasterAgent(service.Service):
         self._provisioned = {}
         self._removals = 0
         self._refreshing = None      # callers waiting for the read in flight, or None
+        self._refusals_logged = collections.OrderedDict()   # (code, name, address) -> when it was last logged
         self.listening = None
         self.address = None
         self._address_call = None
@@ -346,6 +354,15 @@ class MasterAgent(service.Service):
             return session is not None
         return self._locked(pi_name, work)
 
+    def certificate_advice(self, pi_name):
+        """A sentence for the operator when the managed VPN still holds a valid certificate for ``pi_name`` (removing
+        a robot does not revoke it: docs/VPN.md), else None."""
+        certificate = self.certificate_of(pi_name) if self.certificate_of is not None else None
+        if certificate is None or certificate.address is None or certificate.revoked:
+            return None
+        return (f"its VPN certificate still lets it join the platform's VPN as a {certificate.role}: run "
+                f"'rcmp_n vpn revoke {pi_name}' on the master to cut it off")
+
     def server_rows(self):
         """``platform_instance/read?pi_type=S``: the master and the connected server VMs (CONTRACTS §8)."""
         return self.spaces.server_rows(self.address)
@@ -451,13 +468,16 @@ class MasterAgent(service.Service):
         if name == self.config.name:
             raise ic.Refused(f"{name!r} is the master's own name; give the robot another name",
                              code="not_provisioned")
-        if self.expected_address is not None:
-            expected = yield defer.maybeDeferred(self.expected_address, name)
-            if expected is not None and expected != peer.host:
-                self._log_refusal("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
-                            expected)
-                raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
-                                 f"{peer.host}", code="wrong_address")
+        certificate = None
+        if self.certificate_of is not None:
+            certificate = yield defer.maybeDeferred(self.certificate_of, name)
+        if certificate is not None and certificate.address != peer.host:
+            expected = certificate.address or f"none ({certificate.missing})"
+            self._log_refusal("refused hello for %s from %s: %s's VPN address is %s", name, peer.remote, name,
+                              expected)
+            raise ic.Refused(f"a hello for {name!r} must come from its VPN address {expected}, not from "
+                             f"{peer.host}", code="wrong_address")
+        self._check_role(peer, name, "robot" if body["robot"] else "server", certificate)
         if not body["robot"]:
             session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"])
             if session is None:
@@ -478,6 +498,50 @@ class MasterAgent(service.Service):
         must not roll the log over."""
         factory = getattr(self.listening, "factory", None)
         (factory.warn_limited if factory is not None else log.warning)(message, *args)
+
+    def _check_role(self, peer, name, role, certificate):
+        """The role rule (docs/SECURITY.md): with a managed VPN, a hello as ``role`` (robot or server) only from a
+        certificate issued for that role; a server VM's name only from the ``servers`` allow-list when it is set
+        (and, when the list gives one, only from that address). ``ic.Refused`` (``wrong_role``) otherwise."""
+        if certificate is not None and certificate.role != role:
+            other = "a server VM (robot=no)" if certificate.role == "server" else "a robot"
+            fix = (f"issue it a server certificate on the master: rcmp_n vpn client {name} --server"
+                   if role == "server" else
+                   f"to make it a robot, issue it a robot certificate on the master: rcmp_n vpn client {name} "
+                   f"--change-role")
+            self._refused_once("wrong_role", name, peer, "refused hello as a %s for %s from %s: its VPN certificate "
+                               "is a %s certificate", role, name, peer.remote, certificate.role)
+            raise ic.Refused(f"{name!r} holds a {certificate.role} certificate, which lets it join only as {other}, "
+                             f"not as a {role}; {fix}", code="wrong_role")
+        servers = self.config.servers
+        if role != "server" or servers is None:
+            return
+        if name not in servers:
+            self._refused_once("wrong_role", name, peer, "refused hello as a server for %s from %s: not in the "
+                               "master's servers list", name, peer.remote)
+            raise ic.Refused(f"{name!r} is not one of this master's server VMs (key 'servers' of its .init.cfg)",
+                             code="wrong_role")
+        pinned = servers[name]
+        if pinned is not None and pinned != peer.host:
+            self._refused_once("wrong_address", name, peer, "refused hello as a server for %s from %s: the "
+                               "master's servers list gives it address %s", name, peer.remote, pinned)
+            raise ic.Refused(f"server VM {name!r} must say hello from {pinned} (key 'servers' of the master's "
+                             f".init.cfg), not from {peer.host}", code="wrong_address")
+
+    def _refused_once(self, code, name, peer, message, *args):
+        """Log a refusal the first time it happens, quietly (debug) when the same agent is refused again for the
+        same reason within ``REFUSAL_QUIET`` seconds: a refused agent says hello again every few seconds."""
+        key = (code, name, peer.host)
+        now = self.reactor.seconds()
+        last = self._refusals_logged.pop(key, None)
+        if last is not None and now - last < REFUSAL_QUIET:
+            self._refusals_logged[key] = last
+            log.debug(message + " (again)", *args)
+            return
+        self._refusals_logged[key] = now
+        while len(self._refusals_logged) > MAX_REFUSALS_REMEMBERED:
+            self._refusals_logged.popitem(last=False)
+        self._log_refusal(message, *args)
 
     def _refuse_later(self, peer):
         """Close a refused robot's connection once the answer is written."""

@@ -20,6 +20,8 @@ See docs/SERVICE_SPACES.md. Owns:
   items, and the ROS master for ``ss_side`` R; a server VM's ROS master, from its own ``ros_port_base``, and
   S items), and reports items that die later.
 * ``RemoteAgent``: the protocol the master's agent layer implements over the network, one per robot or server.
+  A space's ROS master that a remote agent started is taken only at that agent's own address
+  (``remote_master_uri``): its answer cannot point the S side or the master's polling anywhere else.
 * the special items' side of the runtime: the ports they take (``take_inbound_port``, ``choose_driver_port``)
   and rcm_driver's connection (``connect_driver``, ``say_goodbye_to_driver``: ``r_connection`` /
   ``r_disconnection`` over a ``rcmp_inter_communication.DriverLink`` kept open), which their hooks call.
@@ -40,6 +42,7 @@ were jobs of their own have left it (the process table: ``rcmp_process``; what a
 import collections
 import logging
 import os
+import re
 import socket
 import uuid
 from typing import Protocol
@@ -116,6 +119,20 @@ def _items_on(parts, host):
 
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
+_REMOTE_MASTER_URI = re.compile(r"http://([0-9.]{7,15}):([0-9]{1,5})/?\Z")
+SHOWN_URI = 80          # characters of a URI a peer answered that go into a sentence
+
+
+def remote_master_uri(answer, address):
+    """The URI of a space's ROS master that the remote agent whose connection comes from ``address`` says it
+    started, as ``http://ADDRESS:PORT/``; None unless ``answer`` is exactly that: an ``http`` URI whose host is
+    ``address`` itself (the session's source address, written the same way) and whose port is 1 to 65535, with
+    nothing else (no other host or scheme, no user, path, query or fragment). Anything else would let the agent
+    steer the S-side items and the master's XML-RPC polling to a URL of its choosing."""
+    match = _REMOTE_MASTER_URI.match(answer) if isinstance(answer, str) else None
+    if match is None or match.group(1) != address or not 1 <= int(match.group(2)) <= 65535:
+        return None
+    return f"http://{address}:{int(match.group(2))}/"
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -497,9 +514,17 @@ class _SpaceHost:
         if result.get("reason"):
             raise SpaceError(f"{what} {who}: {result['reason']}")
         if start_ros_master_port is not None:
-            space.ros_master_uri = result.get("ros_master_uri")
-            if not space.ros_master_uri:
+            answer = result.get("ros_master_uri")
+            if not answer:
                 raise SpaceError(f"{what} {who} did not start the ROS master")
+            address = getattr(agent, "address", None)
+            space.ros_master_uri = remote_master_uri(answer, address)
+            if space.ros_master_uri is None:
+                text = answer if isinstance(answer, str) else type(answer).__name__
+                shown = repr(text[:SHOWN_URI]) + ("..." if len(text) > SHOWN_URI else "")
+                raise SpaceError(f"{what} {who} answered that the space's ROS master is at {shown}, which is not on "
+                                 f"its own address: a {what}'s ROS master is accepted only at "
+                                 f"http://{address}:PORT/; nothing of the space was started against it")
         if result.get("inbound_port"):
             space.inbound_port = result["inbound_port"]
         reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}

@@ -146,7 +146,7 @@ def build_master(config, reactor, table=None):
     address = functools.partial(platform_address, config)
     spaces = rcmp_ms.ServiceSpaceManager(reactor, table, config, public_ip, address=address, run_as=run_as)
     agent = rcmp_event.MasterAgent(config, data, table, reactor, public_ip, spaces=spaces, address=address,
-                                   expected_address=lambda name: rcmp_vpn.expected_address(config.home, name))
+                                   certificate_of=lambda name: rcmp_vpn.certificate_of(config.home, name))
     tokens = Tokens(data, reactor)
     platform = PlatformCommands(data, robots=agent)
     console = rcmp_console.Console(reactor, data, platform, agent.spaces, table, describe=agent.describe)

@@ -2,18 +2,24 @@
 
 Each command validates its input (``rcmp_command``), does its SQLite work in a thread (``deferToThread``) and
 returns a Deferred firing with the ``reason`` of an OK answer or failing with a ``CommandError``. Removing a
-connected robot first asks the master runtime (``robots.disconnect``) to disconnect it and tear its service space
-down. Reads are answered from a ``ReadCache`` while the robotics data has not changed.
+connected robot first asks the master runtime (``robots.remove``) to disconnect it and tear its service space
+down; when the platform's VPN still holds a valid certificate for it, the answer and the log say how to revoke it
+(``robots.certificate_advice``). Reads are answered from a ``ReadCache`` while the robotics data has not changed.
 """
+
+import logging
 
 from twisted.internet import defer, threads
 
 from .rcmp_command import BadRequest, Conflict, command, ReadCache, require_fields, validate_name
 
+log = logging.getLogger("rcmp.platform")
+
 
 class PlatformCommands:
-    """``data``: RoboticsData; ``robots``: the master runtime (``remove(pi_name, reason, remove)``, and for the
-    reads of CONTRACTS §8 ``server_rows()`` and ``server_of(pi_name)``) or None."""
+    """``data``: RoboticsData; ``robots``: the master runtime (``remove(pi_name, reason, remove)``,
+    ``certificate_advice(pi_name)``, and for the reads of CONTRACTS §8 ``server_rows()`` and ``server_of(pi_name)``)
+    or None."""
 
     def __init__(self, data, robots=None):
         self.data = data
@@ -67,7 +73,9 @@ class PlatformCommands:
 
         With a master runtime both happen under the robot's lock (``robots.remove``), the lock its hello takes
         to check provisioning and open a session, so a hello racing this call either loses (refused) or wins
-        and is then ended here: never a session left running for a removed robot."""
+        and is then ended here: never a session left running for a removed robot. The robot's VPN certificate is not
+        revoked (removing and provisioning again is how a robot changes its service logic); when it is still valid,
+        the answer and the log say how to revoke it."""
         require_fields(body, ("pi_name",))
         pi_name = validate_name(body["pi_name"], "pi_name")
 
@@ -78,4 +86,9 @@ class PlatformCommands:
             disconnected = False
         else:
             disconnected = yield self.robots.remove(pi_name, "its provisioning was removed", remove)
-        return f"platform instance '{pi_name}' removed{' after disconnecting it' if disconnected else ''}"
+        answer = f"platform instance '{pi_name}' removed{' after disconnecting it' if disconnected else ''}"
+        advice = getattr(self.robots, "certificate_advice", lambda name: None)(pi_name)
+        if advice:
+            answer = f"{answer}; {advice}"
+            log.warning("%s", answer)
+        return answer

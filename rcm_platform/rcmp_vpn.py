@@ -4,21 +4,27 @@ Owns:
 - ``HOME/vpn/`` (mode 0700) and everything in it: the certificate authority (``ca.crt``, ``ca.key``), the server's
   certificate and key, the tls-crypt key, the revocation list ``crl.pem``, OpenVPN's client-config-dir ``ccd/``
   (one file per name: its fixed address, or ``disable`` once revoked), ``server.conf`` and the register of names
-  issued ``issued.json`` (address, current serial, revoked or not). Keys are made in this process with the
+  issued ``issued.json`` (address, current serial, role, revoked or not). Keys are made in this process with the
   ``cryptography`` package (EC P-256) and never leave the folder except inside the client file ``vpn client``
   writes for its robot. Every change is made under a lock, each file written whole and renamed into place,
   the register last, so an interrupted command leaves the previous state (docs/DECISIONS.md, docs/VPN.md);
-- the command line ``rcmp_n vpn init | client NAME | revoke NAME | list`` (``add_parser``, ``run``): exit status
-  0 on success, 1 when the command cannot be done (one line on stderr, nothing changed), 2 for bad usage;
+- certificate roles: a client certificate says what its holder may be, a robot (``vpn client NAME``) or a server
+  VM (``vpn client NAME --server``), in its subject's organizational unit (``OU=robot`` / ``OU=server``) and in
+  the register; a certificate issued before roles (no OU, no ``role`` in the register) counts as a robot's;
+- the command line ``rcmp_n vpn init | client NAME [--server] | revoke NAME | list`` (``add_parser``, ``run``):
+  exit status 0 on success, 1 when the command cannot be done (one line on stderr, nothing changed), 2 for bad
+  usage;
 - OpenVPN's management interface on the Unix socket ``HOME/vpn/management.sock``: ``kill`` (revocation cuts a
   connected client at once) and ``status`` (who is connected, for ``vpn list``);
-- ``expected_address(home, name)``: NAME's fixed VPN address when the VPN is managed, for the master's hello check;
+- ``certificate_of(home, name)``: what the register says of NAME (its fixed address, its certificate's role, revoked
+  or not) when this master's VPN is managed, for the master's hello check and for r_provisioning's advice;
 - ``ManagedVpn``: with ``HOME/vpn/server.conf`` (master) or ``HOME/vpn/client.conf`` (robot, server VM) the agent
   runs OpenVPN as a child of its process table before anything else, restarts it with backoff when it exits,
   stops it last, and logs its state changes. Without those files this module does nothing to the agent.
 """
 
 import argparse
+import collections
 import datetime
 import fcntl
 import ipaddress
@@ -50,6 +56,10 @@ CRL_DAYS = 3650                       # rewritten at every change; OpenVPN refus
 OPENVPN = "/usr/sbin/openvpn"
 MANAGEMENT_TIMEOUT = 5.0
 HOST_RE = re.compile(r"[A-Za-z0-9]([A-Za-z0-9.-]{0,251}[A-Za-z0-9])?\Z")
+ROBOT = "robot"
+SERVER = "server"
+ROLES = (ROBOT, SERVER)               # what a client certificate lets its holder be (its subject's OU)
+UNRECORDED_ROLE = ROBOT               # the role of a certificate issued before roles existed (no OU, no "role")
 
 
 class VpnError(Exception):
@@ -170,14 +180,18 @@ def _make_ca():
     return key, cert
 
 
-def _issue(ca_key, ca_cert, common_name, server):
-    """A new key and a certificate for ``common_name`` signed by the CA (server or client usage)."""
+def _issue(ca_key, ca_cert, common_name, tls_server, role=None):
+    """A new key and a certificate for ``common_name`` signed by the CA: TLS server usage (the OpenVPN server's),
+    or client usage with the platform ``role`` (robot or server VM) as the subject's organizational unit."""
     x509, hashes, _, _, ExtendedKeyUsageOID, NameOID = _crypto()
     key = _new_key()
     now = _now()
-    usage = ExtendedKeyUsageOID.SERVER_AUTH if server else ExtendedKeyUsageOID.CLIENT_AUTH
+    usage = ExtendedKeyUsageOID.SERVER_AUTH if tls_server else ExtendedKeyUsageOID.CLIENT_AUTH
+    subject = [x509.NameAttribute(NameOID.COMMON_NAME, common_name)]
+    if role is not None:
+        subject.insert(0, x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role))
     cert = (x509.CertificateBuilder()
-            .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, common_name)]))
+            .subject_name(x509.Name(subject))
             .issuer_name(ca_cert.subject).public_key(key.public_key())
             .serial_number(x509.random_serial_number())
             .not_valid_before(now - datetime.timedelta(minutes=5))
@@ -257,10 +271,12 @@ verb 3
 """
 
 
-def _client_conf(remote, port, ca_pem, cert_pem, key_pem, tls_crypt):
+def _client_conf(remote, port, ca_pem, cert_pem, key_pem, tls_crypt, role):
+    machine = "robot" if role == ROBOT else "server VM (robot=no)"
     return f"""\
 # The RCM platform's VPN, client side, written by 'rcmp_n vpn client' (CONTRACTS section 7; docs/VPN.md).
-# It holds this machine's private key: copy it only to HOME/vpn/client.conf (mode 0600) on its robot.
+# It holds this machine's private key: copy it only to HOME/vpn/client.conf (mode 0600) on its {machine}.
+# {ROLE_LINE}{role}
 client
 dev tun0
 dev-type tun
@@ -352,7 +368,7 @@ def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False, default
     server_address = str(next(network.hosts()))
 
     ca_key, ca_cert = _make_ca()
-    server_key, server_cert = _issue(ca_key, ca_cert, SERVER_CN, server=True)
+    server_key, server_cert = _issue(ca_key, ca_cert, SERVER_CN, tls_server=True)
     register = {"version": 1, "subnet": str(network), "server_address": server_address, "port": port,
                 "remote": remote, "clients": {}, "revoked": []}
     new = tempfile.mkdtemp(prefix=".vpn-new-", dir=home)  # mode 0700
@@ -380,6 +396,15 @@ def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False, default
     return register
 
 
+ROLE_LINE = "Certificate role: "      # the client file's comment naming its role (read by the installer)
+
+
+def role_of(entry):
+    """The role a register entry's certificate grants: its ``role``, or robot for one issued before roles."""
+    role = entry.get("role")
+    return role if role in ROLES else UNRECORDED_ROLE
+
+
 def _next_address(register):
     network = ipaddress.IPv4Network(register["subnet"])
     taken = {register["server_address"]} | {c["address"] for c in register["clients"].values()}
@@ -389,12 +414,19 @@ def _next_address(register):
     raise VpnError(f"the VPN subnet {network} has no free address left")
 
 
-def client(home, name, remote=None, port=None, stage=None):
-    """Issue NAME a certificate (its earlier ones revoked) at its fixed address; return (address, client file).
+def client(home, name, remote=None, port=None, stage=None, role=ROBOT, change_role=False):
+    """Issue NAME a certificate for ``role`` (robot or server; its earlier ones revoked) at its fixed address;
+    return (address, client file).
+
+    A name keeps the role it was first issued with: issuing it with the other role is refused unless
+    ``change_role`` (its certificate of the old role is then revoked like any earlier one). A name issued before
+    roles has none recorded and takes either without ``change_role``.
 
     ``stage(text)``, when given, is called with the client file before anything is committed (it writes the file
     to a temporary place, and raises to abandon the command) and returns a callable run after the commit.
     """
+    if role not in ROLES:
+        raise VpnError(f"a certificate's role is robot or server, not {str(role)[:40]!r}")
     folder = vpn_dir(home)
     _load_register(home)
     with _Lock(home):
@@ -406,16 +438,20 @@ def client(home, name, remote=None, port=None, stage=None):
         except OSError as exc:
             raise VpnError(f"{folder}: cannot read tc.key: {exc.strerror or exc}") from None
         entry = register["clients"].get(name)
+        if entry and entry.get("role") in ROLES and entry["role"] != role and not change_role:
+            old = entry["role"]
+            raise VpnError(f"'{name}' was issued a {old} certificate; to issue it a {role} certificate instead, "
+                           f"give --change-role (its {old} certificate is revoked)")
         address = entry["address"] if entry else _next_address(register)
-        key, cert = _issue(ca_key, ca_cert, name, server=False)
+        key, cert = _issue(ca_key, ca_cert, name, tls_server=False, role=role)
         text = _client_conf(remote or register["remote"], port or register["port"], _cert_pem(ca_cert),
-                            _cert_pem(cert), _key_pem(key), tls_crypt)
+                            _cert_pem(cert), _key_pem(key), tls_crypt, role)
         finish = stage(text) if stage else None
         now = _now().isoformat()
         if entry and not entry.get("revoked"):   # only the newest file of a name works
             register["revoked"].append({"serial": entry["serial"], "date": now})
         register["clients"][name] = {"address": address, "serial": cert.serial_number, "revoked": False,
-                                     "issued": now}
+                                     "issued": now, "role": role}
         netmask = ipaddress.IPv4Network(register["subnet"]).netmask
         try:
             _write_file(os.path.join(folder, "ccd", name), f"ifconfig-push {address} {netmask}\n", 0o644)
@@ -525,14 +561,15 @@ def _management(home, command):
 
 
 def listing(home):
-    """``[(name, address, state)]`` sorted by name; state is connected, disconnected or revoked."""
+    """``[(name, address, state, role)]`` sorted by name; state is connected, disconnected or revoked, role robot
+    or server (robot for a certificate issued before roles)."""
     register = _load_register(home)
     connected = connected_names(home) or set()
     rows = []
     for name in sorted(register["clients"]):
         entry = register["clients"][name]
         state = "revoked" if entry.get("revoked") else ("connected" if name in connected else "disconnected")
-        rows.append((name, entry["address"], state))
+        rows.append((name, entry["address"], state, role_of(entry)))
     return rows
 
 
@@ -543,12 +580,19 @@ def managed_server(home):
 _cache = {}
 
 
-def expected_address(home, name):
-    """NAME's fixed VPN address when this master's VPN is managed (HOME/vpn/server.conf), else None.
+class Certificate(collections.namedtuple("Certificate", "address role revoked missing")):
+    """What the managed VPN's register says of one name: ``address``, its fixed VPN address, or None when no
+    address is its own (``missing`` then says why: never issued, or the register cannot be read); ``role``, what
+    its current certificate lets it be (robot or server); ``revoked``."""
 
-    With a managed VPN a name that was never issued a certificate gets a sentence instead of an address ("none
-    ..."): no address is its own, so a hello naming it is refused wherever it comes from. A revoked name keeps
-    its address (nobody holds it).
+
+def certificate_of(home, name):
+    """What this master's managed VPN (HOME/vpn/server.conf) says of NAME, a ``Certificate``; None when the VPN is
+    not managed (no rule from certificates then).
+
+    A name that was never issued a certificate has no address (a hello naming it is refused wherever it comes
+    from) and no role. A revoked name keeps its address and role (nobody holds them). The register is read again
+    only when its file changed.
     """
     if not managed_server(home):
         return None
@@ -561,10 +605,12 @@ def expected_address(home, name):
                 cached = (stamp, json.load(f))
             _cache[path] = cached
         entry = cached[1]["clients"].get(name)
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if entry is not None:
+            return Certificate(str(entry["address"]), role_of(entry), bool(entry.get("revoked")), None)
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         log.error("cannot read the VPN register %s: %s", path, exc)
-        return "none (the VPN register cannot be read)"
-    return entry["address"] if entry else "none (no VPN certificate was issued to it)"
+        return Certificate(None, None, False, "the VPN register cannot be read")
+    return Certificate(None, None, False, "no VPN certificate was issued to it")
 
 
 # -- the managed VPN in the agent ---------------------------------------------------------------------------
@@ -778,19 +824,28 @@ def add_parser(subparsers, home_default):
     p.add_argument("--remote", type=_host, metavar="HOST",
                    help="the master's address as robots reach it (default: the address of ext_interface)")
     p.add_argument("--force", action="store_true", help="replace an existing VPN (every client file stops working)")
-    p = commands.add_parser("client", parents=[common], help="issue a robot's (or server VM's) client file",
+    p = commands.add_parser("client", parents=[common], help="issue a robot's (or, with --server, a server VM's) "
+                                                             "client file",
                             description="Issue NAME a certificate (CN = NAME) and its fixed VPN address (the same "
                                         "every time) and write one self-contained OpenVPN client configuration. "
-                                        "NAME's earlier certificates stop working.")
-    p.add_argument("name", type=_name, metavar="NAME", help="the robot's instance name (its pi_name)")
+                                        "NAME's earlier certificates stop working. The certificate says what its "
+                                        "holder may be: a robot, or with --server a server VM; the master accepts "
+                                        "nothing else from it.")
+    p.add_argument("name", type=_name, metavar="NAME",
+                   help="the robot's instance name (its pi_name), or the server VM's name")
+    p.add_argument("--server", action="store_true",
+                   help="a server VM's certificate (its init.cfg says robot=no); default: a robot's")
+    p.add_argument("--change-role", action="store_true",
+                   help="issue NAME a certificate of the other role than it had (its old certificate is revoked)")
     p.add_argument("-o", "--output", metavar="FILE", help="write the client file here (mode 0600; default: stdout)")
     p.add_argument("--remote", type=_host_port, metavar="HOST[:PORT]",
                    help="the master as this robot reaches it (default: init's remote and port)")
     p = commands.add_parser("revoke", parents=[common], help="revoke a name's certificate and cut it off",
                             description="Revoke NAME's certificate; a connected client is cut off at once.")
     p.add_argument("name", type=_name, metavar="NAME")
-    commands.add_parser("list", parents=[common], help="one line per name issued: NAME ADDRESS STATE",
-                        description="One line per name issued: NAME ADDRESS connected|disconnected|revoked.")
+    commands.add_parser("list", parents=[common], help="one line per name issued: NAME ADDRESS STATE ROLE",
+                        description="One line per name issued: NAME ADDRESS connected|disconnected|revoked "
+                                    "robot|server.")
     return vpn
 
 
@@ -834,9 +889,12 @@ def run(args, out=None, err=None, default_remote=None):
         elif args.vpn_command == "client":
             remote, port = args.remote if args.remote else (None, None)
             stage = _staged_file(args.output) if args.output else None
-            address, text = client(home, args.name, remote, port, stage=stage)
+            role = SERVER if args.server else ROBOT
+            address, text = client(home, args.name, remote, port, stage=stage, role=role,
+                                   change_role=args.change_role)
             if args.output:
-                out.write(f"{args.name}: VPN address {address}; client file written to {args.output}\n")
+                out.write(f"{args.name}: VPN address {address}, {role} certificate; client file written to "
+                          f"{args.output}\n")
             else:
                 out.write(text)
         elif args.vpn_command == "revoke":
@@ -845,8 +903,8 @@ def run(args, out=None, err=None, default_remote=None):
             cut = "; its connection was cut" if killed else ""
             out.write(f"{args.name}: {state}{cut}\n")
         else:
-            for name, address, state in listing(home):
-                out.write(f"{name} {address} {state}\n")
+            for name, address, state, role in listing(home):
+                out.write(f"{name} {address} {state} {role}\n")
     except VpnError as exc:
         err.write(f"rcmp_n vpn {args.vpn_command}: {exc}\n")
         return 1

@@ -6,7 +6,9 @@ creates the master's platform folder with the agent's *default* configuration (`
 9999, no address keys; only short heartbeats) and runs ``rcmp_n vpn init --subnet 198.51.100.0/24`` in the master
 host, so the client files name the master's ``eth0`` address. ``add_robot(name)`` adds a host, issues
 ``rcmp_n vpn client NAME -o HOME/vpn/client.conf`` on the master and writes the robot's ``init.cfg`` (name and
-heartbeats only). Agents are started with ``python3 -m rcm_platform --home HOME`` inside their hosts, as children
+heartbeats only); ``add_server(name)`` the same for a server VM (``robot=no``) with a server certificate
+(``--server``), or with the certificate of another role to play an attacker. ``HELLO`` is a hello over the agent
+protocol as a one-file script, for a host to send as anyone it likes. Agents are started with ``python3 -m rcm_platform --home HOME`` inside their hosts, as children
 of the LAN's ``ProcessGroup``; each agent starts its own OpenVPN (the managed VPN). ``rdapi(method, path, body)``
 calls the master from the office host.
 
@@ -14,12 +16,13 @@ Everything is removed by the LAN's teardown (processes stopped, namespaces delet
 under ``root`` (a test's temporary folder).
 """
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 
-from .hosts import VPN_SUBNET
+from .hosts import VPN_SUBNET, Lan
 from .polling import wait_until
 from .rcmp_agent import AgentLog
 from .processes import ros_env
@@ -28,6 +31,39 @@ REPO = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 PYTHON = "/usr/bin/python3"
 HEARTBEAT = 0.5
 MISSES = 3
+# a hello over the agent protocol (docs/PROTOCOL.md), from whichever host runs it; prints the answer frame.
+# argv: name, address, master, port, and "robot" or "server" (default robot)
+HELLO = r"""
+import json, socket, struct, sys
+name, address, master, port = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+robot = (sys.argv[5] if len(sys.argv) > 5 else "robot") == "robot"
+s = socket.create_connection((master, port), timeout=10)
+body = {"name": name, "address": address, "robot": robot, "version": 1}
+frame = json.dumps({"v": 1, "id": 1, "kind": "req", "op": "hello", "body": body}).encode()
+s.sendall(struct.pack(">I", len(frame)) + frame)
+def read(n):
+    data = b""
+    while len(data) < n:
+        chunk = s.recv(n - len(data))
+        if not chunk:
+            raise SystemExit("connection closed")
+        data += chunk
+    return data
+size = struct.unpack(">I", read(4))[0]
+print(read(size).decode())
+"""
+
+
+@contextlib.contextmanager
+def vpn_platform(tmp_path_factory, name, **keys):
+    """A ``VpnPlatform`` (``keys`` for its constructor) on a LAN of its own, under a temporary folder named after
+    ``name``; the test is skipped without root. Everything is removed when the block ends."""
+    import pytest
+    if os.geteuid() != 0:
+        pytest.skip("test hosts need root (network namespaces)")
+    root = tmp_path_factory.mktemp(name)
+    with Lan() as lan:
+        yield VpnPlatform(lan, root, **keys)
 
 
 class Agent(AgentLog):
@@ -106,17 +142,26 @@ class VpnPlatform:
                                     check=False, cwd=REPO)
 
     def add_robot(self, name, **keys):
+        return self._add_agent(name, "robot", "robot", keys)
+
+    def add_server(self, name, certificate="server", **keys):
+        """A server VM (``robot=no``) whose client file holds a ``certificate`` of that role (``server``, as
+        'rcmp_n vpn client NAME --server' issues it, or ``robot``: a robot's client file on a server VM)."""
+        return self._add_agent(name, "server", certificate, keys)
+
+    def _add_agent(self, name, role, certificate, keys):
         host = self.lan.add_host(name)
         home = os.path.join(self.root, name)
         os.makedirs(os.path.join(home, "vpn"), mode=0o700)
-        result = self.vpn("client", name, "-o", os.path.join(home, "vpn", "client.conf"))
+        issue = ["--server"] if certificate == "server" else []
+        result = self.vpn("client", name, *issue, "-o", os.path.join(home, "vpn", "client.conf"))
         assert result.returncode == 0, result.stdout
-        settings = {"name": name, "robot": "yes"}
+        settings = {"name": name, "robot": "yes" if role == "robot" else "no"}
         if self.heartbeat:
             settings.update(heartbeat_interval=self.heartbeat, heartbeat_misses=MISSES)
         settings.update(keys)
         self._write_cfg(os.path.join(home, "init.cfg"), settings)
-        agent = Agent(self, host, home, "robot")
+        agent = Agent(self, host, home, role)
         self.robots[name] = agent
         return agent
 

@@ -42,7 +42,7 @@ def test_demo_hosts_pairs_two_robots_over_the_vpn_and_ctrl_c_removes_everything(
     vpn_line = next(l.strip() for l in text.splitlines() if l.strip().endswith("vpn list"))
     vpn_argv = shlex.split(vpn_line.split("&&", 1)[1])
     listing = subprocess.run(vpn_argv, capture_output=True, text=True, timeout=30, cwd=ROOT).stdout
-    assert listing == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 connected\n"
+    assert listing == "robot1 198.51.100.2 connected robot\nrobot2 198.51.100.3 connected robot\n"
 
     # the console, from this machine's browser: a loopback port forwarded into the master's machine; each robot's
     # printed link opens on its pose

@@ -43,9 +43,9 @@ def quiet_ports(count):
 class InProcessRobot:
     """A RemoteAgent whose agent is an ItemRunner in this process (what rcmp_event does over TCP)."""
 
-    def __init__(self, name, runner):
+    def __init__(self, name, runner, address=ROBOT_IP):
         self.name = name
-        self.address = ROBOT_IP
+        self.address = address          # its session's source address: the master takes its ROS master only there
         self.runner = runner
         self.calls = []
 
@@ -433,7 +433,7 @@ class ServiceSpaceTests(unittest.TestCase):
                                     stop_timeouts=(3.0, 1.0))
         server = ItemRunner(reactor, server_table, server_config, env=self.env,
                                  on_item_exited=self.manager.item_exited)
-        self.manager.add_server("vm1", InProcessRobot("vm1", server), 2, server_ip)
+        self.manager.add_server("vm1", InProcessRobot("vm1", server, server_ip), 2, server_ip)
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py"),
                              node("r_talker", side="R", params="_topic:=r_chatter")]}
         space = yield self.manager.create("robot1", logic, self.robot)

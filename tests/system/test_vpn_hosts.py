@@ -14,10 +14,9 @@ import signal
 import pytest
 
 from tests.support.firos import write_config
-from tests.support.hosts import Lan
 from tests.support.processes import ros_env
 from tests.support.polling import wait_until
-from tests.support.vpn_hosts import HEARTBEAT, MISSES, PYTHON, REPO, VpnPlatform
+from tests.support.vpn_hosts import HEARTBEAT, HELLO, MISSES, PYTHON, REPO, vpn_platform
 
 pytestmark = pytest.mark.netns
 
@@ -37,25 +36,6 @@ def firos_logic(config_dir):
         {"sn_package": "firos", "sn_type": "core.py", "sn_name": "firos", "sn_params": f"--config {config_dir}",
          "sn_side": "S"},
     ], "sl_list": []}
-# a hello over the agent protocol (docs/PROTOCOL.md), from whichever host runs it; prints the answer frame
-HELLO = r"""
-import json, socket, struct, sys
-name, address, master, port = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
-s = socket.create_connection((master, port), timeout=10)
-body = {"name": name, "address": address, "robot": True, "version": 1}
-frame = json.dumps({"v": 1, "id": 1, "kind": "req", "op": "hello", "body": body}).encode()
-s.sendall(struct.pack(">I", len(frame)) + frame)
-def read(n):
-    data = b""
-    while len(data) < n:
-        chunk = s.recv(n - len(data))
-        if not chunk:
-            raise SystemExit("connection closed")
-        data += chunk
-    return data
-size = struct.unpack(">I", read(4))[0]
-print(read(size).decode())
-"""
 # the space's ROS master, asked from the master host: the URI of a node (its host is the address it registered from)
 LOOKUP = r"""
 import sys, xmlrpc.client
@@ -66,17 +46,13 @@ print(uri if code == 1 else "")
 
 @pytest.fixture(scope="module")
 def platform(tmp_path_factory):
-    if os.geteuid() != 0:
-        pytest.skip("test hosts need root (network namespaces)")
-    root = tmp_path_factory.mktemp("vpn-hosts")
-    with Lan() as lan:
-        p = VpnPlatform(lan, root)
+    with vpn_platform(tmp_path_factory, "vpn-hosts") as p:
         p.add_robot("robot1")
         p.add_robot("robot2")
         # the stand-in broker on the office host (the fourth host), FIROS's configuration pointing at it
         p.broker = p.office.start([PYTHON, "-m", "tests.ngsi_broker", "--host", p.office.address, "--port",
                                    str(BROKER_PORT)], cwd=REPO, name="ngsi-broker")
-        config_dir = write_firos_config(str(root / "firos-config"), p.office.address)
+        config_dir = write_firos_config(os.path.join(p.root, "firos-config"), p.office.address)
         p.master.start()
         p.wait_rdapi()
         p.rdapi_ok("POST", "/service_logic/provisioning", ROBOT_LOGIC)
@@ -147,7 +123,7 @@ def test_robots_pair_over_the_vpn_with_default_interfaces(platform):
                    message=f"{name}'s r_talker to register with its space's ROS master")
         assert node_uri().startswith(f"http://{address}:"), (name, node_uri())
     # vpn list on the master says who is connected
-    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 connected\n"
+    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected robot\nrobot2 198.51.100.3 connected robot\n"
 
 
 def test_the_seeds_curl_commands_answer_on_the_masters_eth0(platform):
@@ -287,11 +263,11 @@ def test_a_revoked_robot_is_cut_off_and_stays_off(platform):
     p.wait_state("robot2", False, False, timeout=10)
     # its OpenVPN tries again and the master's refuses its certificate
     openvpn_log = os.path.join(p.master.home, "log", "openvpn.log")
-    wait_until(lambda: "certificate revoked: CN=robot2" in _read(openvpn_log), timeout=60, interval=0.5,
+    wait_until(lambda: "certificate revoked: OU=robot, CN=robot2" in _read(openvpn_log), timeout=60, interval=0.5,
                message="robot2's OpenVPN to be refused for its revoked certificate")
     assert p.state("robot2") == (False, False)
     assert p.robots["robot2"].vpn_address() is None or "robot2 connected" not in p.master.log_text()[-2000:]
-    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected\nrobot2 198.51.100.3 revoked\n"
+    assert p.vpn("list").stdout == "robot1 198.51.100.2 connected robot\nrobot2 198.51.100.3 revoked robot\n"
     assert p.state("robot1") == (True, True)
 
 

@@ -4,7 +4,6 @@ Real files, real certificates checked with ``cryptography``, the real command li
 a running OpenVPN (connected clients, revocation cutting one off) is in tests/system/test_vpn_hosts.py.
 """
 
-import ipaddress
 import json
 import os
 import stat
@@ -169,10 +168,10 @@ def test_the_same_name_gets_the_same_address_and_only_its_newest_file_works(home
     new = x509.load_pem_x509_certificate(inline(again.stdout, "cert").encode())
     assert old.serial_number != new.serial_number
     assert crl_serials(home) == {old.serial_number}
-    assert rcmp_n(home, "vpn", "list").stdout == ("robot1 198.51.100.2 disconnected\n"
-                                                  "robot2 198.51.100.3 disconnected\n")
-    assert rcmp_vpn.expected_address(str(home), "robot1") == "198.51.100.2"
-    assert rcmp_vpn.expected_address(str(home), "robot2") == "198.51.100.3"
+    assert rcmp_n(home, "vpn", "list").stdout == ("robot1 198.51.100.2 disconnected robot\n"
+                                                  "robot2 198.51.100.3 disconnected robot\n")
+    assert rcmp_vpn.certificate_of(str(home), "robot1").address == "198.51.100.2"
+    assert rcmp_vpn.certificate_of(str(home), "robot2").address == "198.51.100.3"
 
 
 def test_revoke_puts_the_certificate_in_the_crl_disables_the_name_and_list_says_so(home):
@@ -182,15 +181,15 @@ def test_revoke_puts_the_certificate_in_the_crl_disables_the_name_and_list_says_
     assert result.returncode == 0 and result.stdout == "robot2: revoked\n"
     assert crl_serials(home) == {serial}
     assert (home / "vpn" / "ccd" / "robot2").read_text() == "disable\n"
-    assert rcmp_n(home, "vpn", "list").stdout == "robot2 198.51.100.2 revoked\n"
+    assert rcmp_n(home, "vpn", "list").stdout == "robot2 198.51.100.2 revoked robot\n"
     # it keeps its address: a hello naming it from elsewhere is still refused
-    assert rcmp_vpn.expected_address(str(home), "robot2") == "198.51.100.2"
+    assert rcmp_vpn.certificate_of(str(home), "robot2").address == "198.51.100.2"
     again = rcmp_n(home, "vpn", "revoke", "robot2")
     assert again.returncode == 0 and "already revoked" in again.stdout
     # a new file for it makes it work again, at the same address
     reissued = rcmp_n(home, "vpn", "client", "robot2")
     assert reissued.returncode == 0
-    assert rcmp_n(home, "vpn", "list").stdout == "robot2 198.51.100.2 disconnected\n"
+    assert rcmp_n(home, "vpn", "list").stdout == "robot2 198.51.100.2 disconnected robot\n"
     assert crl_serials(home) == {serial}
 
 
@@ -222,15 +221,13 @@ def test_commands_without_a_vpn_say_so(tmp_path):
     for args in (["client", "robot1"], ["revoke", "robot1"], ["list"]):
         result = rcmp_n(h, "vpn", *args)
         assert result.returncode == 1 and "run 'rcmp_n vpn init' first" in result.stderr, args
-    assert rcmp_vpn.expected_address(str(h), "robot1") is None
+    assert rcmp_vpn.certificate_of(str(h), "robot1") is None
     assert list(h.iterdir()) == []
 
 
 def test_a_name_never_issued_has_no_address_under_a_managed_vpn(home):
-    expected = rcmp_vpn.expected_address(str(home), "robot7")
-    assert expected is not None
-    with pytest.raises(ValueError):
-        ipaddress.IPv4Address(expected)
+    expected = rcmp_vpn.certificate_of(str(home), "robot7")
+    assert expected is not None and expected.address is None
 
 
 def test_addresses_run_out_with_a_clear_error(tmp_path):
@@ -249,7 +246,7 @@ def test_help_lists_the_vpn_commands_and_the_agent_options_still_parse(tmp_path)
     vpn = rcmp_n(tmp_path, "vpn", "--help")
     assert all(word in vpn.stdout for word in ("init", "client", "revoke", "list"))
     client = rcmp_n(tmp_path, "vpn", "client", "--help")
-    assert "-o FILE" in client.stdout and "HOST[:PORT]" in client.stdout
+    assert "-o FILE" in client.stdout and "HOST[:PORT]" in client.stdout and "--server" in client.stdout
     from rcm_platform import rcmp_node
     args = rcmp_node.parse_args(["--home", str(tmp_path)])
     assert args.command is None and args.home == str(tmp_path)

@@ -425,3 +425,39 @@ def test_robot_vpn_config_is_installed_and_ip_master_comes_from_the_vpn(tmp_path
     assert again.returncode == 0, again.stderr
     assert VPN_CONFIG_QUESTION + " [keep]:" in again.stdout
     assert f"keep the VPN client file {setup.platform}/vpn/client.conf" in again.stdout
+
+
+SERVER_VPN_CONFIG_QUESTION = ("OpenVPN client file of this machine, from 'rcmp_n vpn client NAME --server' on the "
+                              "master (none: you run the VPN yourself)")
+
+
+def test_a_server_vm_is_asked_for_a_server_certificate_and_refuses_a_robots(tmp_path):
+    setup = Setup(tmp_path, "robot")
+    robot_file = tmp_path / "robot1.conf"
+    robot_file.write_text("# Certificate role: robot\n" + CLIENT_FILE)
+    server_file = tmp_path / "vm1.conf"
+    server_file.write_text("# Certificate role: server\n" + CLIENT_FILE)
+    old_file = tmp_path / "old.conf"                   # written before certificate roles: counts as a robot's
+    old_file.write_text(CLIENT_FILE)
+    # the wizard names the command with --server, and asks again for a robot's file
+    asked = setup.run(f"\nno\nvm1\n{robot_file}\n{old_file}\n{server_file}\n198.51.100.1\nno\n")
+    assert asked.returncode == 0, asked.stderr
+    assert SERVER_VPN_CONFIG_QUESTION + " [none]:" in asked.stdout
+    assert (f"'{robot_file}' holds a robot's certificate; a server VM needs a server certificate: on the master, "
+            f"'rcmp_n vpn client NAME --server -o FILE'.") in asked.stdout
+    assert f"'{old_file}' holds a certificate issued before certificate roles" in asked.stdout
+    assert f"install {server_file} as {setup.platform}/vpn/client.conf (mode 0600)" in asked.stdout
+    # options: refused before anything changes, either way round
+    for robot, client, message in (("no", robot_file, "holds a robot's certificate"),
+                                   ("yes", server_file, "holds a server VM's certificate")):
+        result = setup.run("", "-n", "--robot", robot, "--name", "vm1", "--vpn-config", str(client))
+        assert result.returncode == 2, result.stdout
+        assert f"--vpn-config: '{client}' {message}" in result.stderr
+        assert not setup.platform.exists()
+    assert setup.run("", "-n", "--robot", "no", "--name", "vm1", "--vpn-config", str(server_file)).returncode == 0
+    assert setup.run("", "-n", "--robot", "yes", "--name", "r1", "--vpn-config", str(robot_file)).returncode == 0
+    # a re-run that keeps an installed robot's file refuses to turn the machine into a server VM with it
+    (setup.platform / "vpn").mkdir(parents=True)
+    (setup.platform / "vpn" / "client.conf").write_text(robot_file.read_text())
+    kept = setup.run("", "-n", "--robot", "no", "--name", "vm1", "--ip-master", "198.51.100.1")
+    assert kept.returncode != 0 and "the installed client file holds a robot's certificate" in kept.stderr

@@ -97,6 +97,16 @@ def test_make_config_gives_what_load_config_gives(tmp_path):
         make_config("robot", str(tmp_path), name="r1", no_such_key=1)
 
 
+def test_servers_allow_list(tmp_path):
+    assert load_config(tmp_path).servers is None                 # unset: no list
+    write(tmp_path, ".init.cfg", "[main]\nservers=vm1, vm2@10.11.12.40 ,\n")
+    assert load_config(tmp_path).servers == {"vm1": None, "vm2": "10.11.12.40"}
+    write(tmp_path, ".init.cfg", "[main]\nservers=\n")
+    assert load_config(tmp_path).servers == {}                   # empty: no server VM may join
+    assert make_config("master", str(tmp_path), os.path.join(str(tmp_path), ".init.cfg"), servers={}) == \
+        load_config(tmp_path)
+
+
 BAD = [
     (".init.cfg", "[main]\next_port=abc\n", "key 'ext_port': not a port number: 'abc'"),
     (".init.cfg", "[main]\next_port=0\n", "key 'ext_port': not a port number"),
@@ -125,6 +135,10 @@ BAD = [
     (".init.cfg", "[main]\nmax_service_spaces=-1\n", "key 'max_service_spaces': must be between 0 and 100000"),
     (".init.cfg", "[main]\nmax_service_spaces=100001\n", "key 'max_service_spaces': must be between 0 and 100000"),
     ("init.cfg", b"[main]\nname=\xff\n", "not a UTF-8 text file"),
+    (".init.cfg", "[main]\nservers=vm1, vm-2\n", "key 'servers': not a valid instance name"),
+    (".init.cfg", "[main]\nservers=vm1, vm1@10.0.0.2\n", "key 'servers': server vm1 is listed twice"),
+    (".init.cfg", "[main]\nservers=vm1@10.0.0.300\n", "key 'servers': not an IPv4 address"),
+    ("init.cfg", "[main]\nname=r1\nrobot=no\nservers=vm1\n", "key 'servers': not used by a server VM"),
 ]
 
 

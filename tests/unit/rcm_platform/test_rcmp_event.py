@@ -142,9 +142,11 @@ class Logged(logging.Handler):
     def __init__(self):
         super().__init__(logging.DEBUG)
         self.lines = []
+        self.levels = []
 
     def emit(self, record):
         self.lines.append(record.getMessage())
+        self.levels.append(record.levelno)
 
 
 class AgentTests(unittest.TestCase):

@@ -23,7 +23,7 @@ import types
 from twisted.internet import defer, reactor
 from twisted.trial import unittest
 
-from rcm_platform import rcmp_event
+from rcm_platform import rcmp_event, rcmp_vpn
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform.rcmp_command import NotFound
 from rcm_platform.rcmp_platform_command import PlatformCommands
@@ -50,7 +50,7 @@ class MasterCase(unittest.TestCase):
     """A MasterAgent on 127.0.0.1 with recording data and spaces; helpers to connect as anyone."""
 
     provisioned = ("robot1",)
-    expected_address = None
+    certificate_of = None
     master_keys = {}
 
     @defer.inlineCallbacks
@@ -62,7 +62,7 @@ class MasterCase(unittest.TestCase):
         for key, value in self.master_keys.items():
             setattr(cfg, key, value)
         self.master = rcmp_event.MasterAgent(cfg, self.data, None, reactor, "127.0.0.1", spaces=self.spaces,
-                                             expected_address=self.expected_address)
+                                             certificate_of=self.certificate_of)
         self.master.startService()
         yield until(lambda: self.master.listening is not None)
         self.addCleanup(lambda: self.master.running and self.master.stopService())
@@ -167,11 +167,12 @@ class VpnAddressTests(MasterCase):
     def setUp(self):
         self.asked = []
 
-        def expected_address(name):
+        def certificate_of(name):
             self.asked.append(name)
-            # robot2: no managed address known, no check; robot9: issued a VPN address, never provisioned
-            return {"robot1": "127.0.0.2", "robot9": "127.0.0.9"}.get(name)
-        self.expected_address = expected_address
+            # robot2: no managed VPN says anything of it, no check; robot9: issued a VPN address, never provisioned
+            address = {"robot1": "127.0.0.2", "robot9": "127.0.0.9"}.get(name)
+            return rcmp_vpn.Certificate(address, "robot", False, None) if address else None
+        self.certificate_of = certificate_of
         return super().setUp()
 
     @defer.inlineCallbacks

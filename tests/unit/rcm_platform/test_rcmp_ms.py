@@ -1,4 +1,5 @@
-"""rcmp_ms without processes: a service space's closed set of states, and where a new space is placed."""
+"""rcmp_ms without processes: a service space's closed set of states, where a new space is placed, and which ROS
+master URI the master accepts from the remote agent that started a space's ROS master."""
 
 import pytest
 
@@ -36,3 +37,55 @@ def test_placement_goes_to_the_lowest_load_ties_to_the_master_then_by_name():
     assert choose_server(servers, {"master": 1, "vm1": 1, "vm2": 1}) is vm1
     assert choose_server(servers, {"master": 1, "vm1": 2, "vm2": 1}) is None   # no room anywhere
     assert choose_server([Server("master", 0, "a")], {}) is None         # 0: a pure coordinator
+
+
+ROBOT = "198.51.100.7"
+
+
+@pytest.mark.parametrize("answer, accepted", [
+    ("http://198.51.100.7:11311/", "http://198.51.100.7:11311/"),
+    ("http://198.51.100.7:11311", "http://198.51.100.7:11311/"),
+    ("http://198.51.100.7:01131/", "http://198.51.100.7:1131/"),
+    ("http://198.51.100.7:65535/", "http://198.51.100.7:65535/"),
+])
+def test_a_remote_ros_master_uri_on_the_agents_own_address_is_accepted(answer, accepted):
+    assert rcmp_ms.remote_master_uri(answer, ROBOT) == accepted
+
+
+@pytest.mark.parametrize("answer", [
+    "http://198.51.100.8:11311/",                 # another host
+    "http://127.0.0.1:11311/",                    # the master's own loopback
+    "http://localhost:11311/",
+    "http://198.51.100.70:11311/",                # a prefix of the address is not the address
+    "http://198.51.100.07:11311/",                # the same address written otherwise
+    "http://198.51.100.7.evil.example:11311/",
+    "https://198.51.100.7:11311/",                # another scheme
+    "HTTP://198.51.100.7:11311/",
+    "file:///etc/passwd",
+    "http://198.51.100.7/",                       # no port
+    "http://198.51.100.7:0/",
+    "http://198.51.100.7:011311/",
+    "http://198.51.100.7:70000/",
+    "http://198.51.100.7:11311:80/",
+    "http://198.51.100.7:１１３１１/",              # digits of another script
+    "http://198.51.100.7:11311/RPC2",             # a path
+    "http://198.51.100.7:11311/../",
+    "http://198.51.100.7:11311/?x=1",             # a query, a fragment
+    "http://198.51.100.7:11311/#x",
+    "http://user@198.51.100.7:11311/",            # a user
+    "http://198.51.100.7@198.51.100.8:11311/",
+    "http://198.51.100.7:11311/\n",               # trailing and leading bytes
+    " http://198.51.100.7:11311/",
+    "http://198.51.100.7:11311/\x00",
+    "http://[::1]:11311/",
+    "",
+    None,
+    11311,
+    ["http://198.51.100.7:11311/"],
+])
+def test_any_other_remote_ros_master_uri_is_refused(answer):
+    assert rcmp_ms.remote_master_uri(answer, ROBOT) is None
+
+
+def test_without_a_known_address_nothing_is_accepted():
+    assert rcmp_ms.remote_master_uri("http://198.51.100.7:11311/", None) is None
