@@ -31,7 +31,7 @@ ROS_PACKAGES=(ros-core rosbash rospack-tools python3-rospy python3-roslaunch pyt
   python3-sensor-msgs python3-genpy python3-genmsg catkin python3-catkin-pkg ros-message-generation
   ros-message-runtime libstd-msgs-dev libgeometry-msgs-dev libroscpp-dev cmake g++)
 AGENT_PACKAGES=(python3-twisted python3-netifaces python3-yaml openvpn unzip iproute2)
-MASTER_PACKAGES=(sqlite3)
+MASTER_PACKAGES=(sqlite3 python3-prometheus-client)   # the RDAPI's /metrics (docs/METRICS.md): master only
 
 do_deps() {
     local role=$1 packages missing=()

@@ -14,7 +14,8 @@ Owns:
 - the agent's own files as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data tightened
   (``tighten_files``); at start the catkin workspace named by ``RCMP_WS`` goes into the agent's environment
   (``rcmp_service_item.apply_workspace``);
-- the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, then the RDAPI listener;
+- the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, the console, the metrics
+  (``rcmp_metrics``, served at ``/metrics``), then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
   SIGTERM/SIGINT before the process exits 0. It builds the process table, the space runtime, the address
   function and the items' user (``rcmp_service_item.resolve_run_as``) and passes them in.
@@ -117,7 +118,7 @@ def _top_service(config, reactor, table):
 
 def build_master(config, reactor, table=None):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
-    from . import rcmp_console, rcmp_event, rcmp_ms, rcmp_vpn
+    from . import rcmp_console, rcmp_event, rcmp_metrics, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import TlsError, Tokens, make_site, rdapi_service, tls_options
     from .rcmp_platform_command import PlatformCommands
@@ -154,10 +155,14 @@ def build_master(config, reactor, table=None):
     tokens = Tokens(data, reactor)
     platform = PlatformCommands(data, robots=agent)
     console = rcmp_console.Console(reactor, data, platform, agent.spaces, table, describe=agent.describe)
+    metrics = rcmp_metrics.make_metrics(agent, spaces, platform)   # without prometheus_client: /metrics says so
     site = make_site(platform, ServiceCommands(data, spaces=agent), tokens=tokens,
-                     allowed_origins=config.allowed_origins, console=rcmp_console.ConsoleResource(console))
+                     allowed_origins=config.allowed_origins, console=rcmp_console.ConsoleResource(console),
+                     metrics=metrics)
+    metrics.watch_site(site)
     agent.setServiceParent(top)
     rcmp_console.ConsoleService(console).setServiceParent(top)
+    metrics.setServiceParent(top)  # its hooks are in place before the first hello and the first request
     tokens.setServiceParent(top)   # loaded before the listener starts: never open by mistake
     rdapi_service(site, config.ext_port, public_ip, reactor=reactor, tls=tls).setServiceParent(top)
     top.rdapi_address = (public_ip, config.ext_port)

@@ -20,7 +20,7 @@ LAYERS = {
     "rcmp_command": 1, "rcmp_process": 1,
     "rcmp_service_item": 2, "rcmp_robotics_data": 2, "rcmp_platform_command": 2, "rcmp_service_command": 2,
     "rcmp_ext_connector": 2, "rcmp_vpn": 2,
-    "rcmp_ms": 3, "rcmp_event": 3, "rcmp_console": 3,
+    "rcmp_ms": 3, "rcmp_event": 3, "rcmp_console": 3, "rcmp_metrics": 3,
     "rcmp_node": 4,
     "__main__": 5,
 }
