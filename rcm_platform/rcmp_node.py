@@ -342,12 +342,15 @@ def _written_folder(config):
 
 
 def _agent_needs(config):
-    """The modules the agent imports late (ROS's launch-file loader, netifaces for an interface's address):
-    checked at start, so that a missing one is one line now rather than a failing item later."""
+    """The modules the agent imports late (ROS's launch-file loader, netifaces for an interface's address, pyOpenSSL
+    for an RDAPI over HTTPS): checked at start, so that a missing one is one line now rather than a failing item,
+    or an agent that stops after its VPN came up, later."""
     from . import rcmp_deps
     needs = list(rcmp_deps.ROS_MODULES)
     if config.vpn_address is None or (config.role == "master" and config.ext_address is None):
         needs.append("netifaces")
+    if config.role == "master" and config.rdapi_tls_cert:
+        needs.append("OpenSSL")
     return needs
 
 

@@ -251,6 +251,18 @@ def test_a_missing_module_is_one_line_naming_its_debian_package_exit_3(tmp_path,
     assert snapshot(master_home) == before          # the agent may have begun its log: nothing else
 
 
+def test_an_rdapi_over_https_needs_pyopenssl_and_says_so_at_start(tmp_path):
+    home = tmp_path / "master"
+    home.mkdir()
+    (home / ".init.cfg").write_text("[main]\nvpn_address=127.0.0.1\next_address=127.0.0.1\n"
+                                    "rdapi_tls_cert=/etc/rcm/rdapi.crt\nrdapi_tls_key=/etc/rcm/rdapi.key\n")
+    result = rcmp_n(home, env=blocking(tmp_path, "OpenSSL"))
+    assert result.returncode == 3
+    assert "pyOpenSSL (Python module 'OpenSSL') is missing: install it with 'sudo apt-get install python3-openssl'" \
+        in one_line(result)
+    assert not (home / "robotics_data.db").exists()
+
+
 def test_netifaces_is_needed_only_to_look_an_interface_up(tmp_path):
     home = tmp_path / "master"
     home.mkdir()
