@@ -158,6 +158,8 @@ class Metrics(service.Service):
         self.site = None
         self.rows = None
         self._counted = weakref.WeakSet()    # failed items already counted
+        self._request_series = {}            # (route, method, code) -> (counter, histogram) children: labels()
+                                             # takes a lock and builds a key each time, ~4x the cost of this
         registry = self.registry = prometheus_client.CollectorRegistry()
         self.hello = prometheus_client.Histogram(
             "rcm_hello_duration_seconds", "Time the master took to answer an accepted hello (robots and server "
@@ -209,8 +211,12 @@ class Metrics(service.Service):
                 self.item_failures.labels(item.failure or "other").inc()
 
     def _request(self, route, method, code, seconds):
-        self.requests.labels(route, method, code).inc()
-        self.request_duration.labels(route).observe(seconds)
+        key = (route, method, code)
+        series = self._request_series.get(key)
+        if series is None:      # bounded: Rdapi.route_label and METHOD_LABELS, and the statuses the RDAPI answers
+            series = self._request_series[key] = (self.requests.labels(*key), self.request_duration.labels(route))
+        series[0].inc()
+        series[1].observe(seconds)
 
     # -- the route -----------------------------------------------------------------------------------------------
     @defer.inlineCallbacks
