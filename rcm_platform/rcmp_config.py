@@ -58,7 +58,7 @@ EXIT_OK = 0        # done (the agent: stopped by SIGTERM or SIGINT)
 EXIT_FAILED = 1    # asked rightly, but it could not be done now: the state forbids it or the system refused
 EXIT_USAGE = 2     # bad usage or configuration: command line, configuration file, platform folder
 EXIT_MISSING = 3   # a package the command needs is not installed: the line names it
-EXIT_STATUSES = ("exit status: 0 done (the agent: stopped by SIGTERM or SIGINT); 1 it could not be done (a name "
+EXIT_STATUSES = ("Exit status: 0 done (the agent: stopped by SIGTERM or SIGINT); 1 it could not be done (a name "
                  "that exists already or is unknown, a port taken, a write refused: nothing was changed); 2 bad "
                  "usage or configuration (the command line, the configuration file, the platform folder: missing, "
                  "not a folder, not readable or writable, of the wrong role, holding damaged files); 3 a package "

@@ -177,6 +177,16 @@ def test_usage_errors_exit_2_for_every_command(master_home):
         assert "Traceback" not in result.stderr
 
 
+def test_every_commands_help_lists_the_exit_statuses(tmp_path):
+    for args in ([], ["vpn"], ["vpn", "init"], ["vpn", "client"], ["vpn", "revoke"], ["vpn", "list"], ["token"],
+                 ["token", "add"], ["token", "list"], ["token", "revoke"]):
+        result = rcmp_n(tmp_path, *args, "--help")
+        assert result.returncode == 0, (args, result.stderr)
+        text = " ".join(result.stdout.split())
+        assert "Exit status: 0 done" in text and "2 bad usage or configuration" in text, args
+        assert "3 a package the command needs is not installed" in text, args
+
+
 # -- 1: asked rightly, but it cannot be done now --------------------------------------------------------------
 
 @pytest.mark.parametrize("args,message", [
