@@ -48,7 +48,7 @@ ROS_REPOSITORY_EXTRA=(python3-catkin-pkg cmake g++)
 # Ubuntu. python3-twisted on every agent: our robot agent speaks the agent protocol through Twisted too
 # (docs/INSTALL.md); a robot needs nothing of the master's (no sqlite3 tool).
 AGENT_PACKAGES=(python3-twisted python3-netifaces python3-yaml python3-cryptography openvpn unzip iproute2)
-MASTER_PACKAGES=(sqlite3)
+MASTER_PACKAGES=(sqlite3 python3-prometheus-client)   # the RDAPI's /metrics (docs/METRICS.md): master only
 # the systems this release is tested on (README, "Supported systems"): ID VERSION_ID
 SUPPORTED_SYSTEMS=("debian 12" "debian 13" "ubuntu 20.04" "ubuntu 22.04" "ubuntu 24.04")
 

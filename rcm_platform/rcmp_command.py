@@ -2,9 +2,10 @@
 
 Owns ``CommandError`` and its subclasses (each carries the HTTP status the RDAPI answers with and a sentence naming
 the problem: ``BadRequest`` 400, ``Unauthorized`` 401, ``Forbidden`` 403, ``NotFound`` 404, ``MethodNotAllowed``
-405, ``Conflict`` 409, ``TooLarge`` 413, ``UnsupportedMediaType`` 415); the validation of names (the platform's
-name rule, ``rcmp_config.NAME_RE``: ROS graph names without slashes), of service nodes and service launchers
-(``validate_service_item``, ``validate_service_logic``, ``logic_entries``) and of request bodies; the splitting
+405, ``Conflict`` 409, ``TooLarge`` 413, ``UnsupportedMediaType`` 415, ``Unavailable`` 503); the validation of
+names (the platform's name rule, ``rcmp_config.NAME_RE``: ROS graph names without slashes), of service nodes and
+service launchers (``validate_service_item``, ``validate_service_logic``, ``logic_entries``) and of request
+bodies; the splitting
 of params as a shell would split them (``split_params``, the only place where params become words: ``shlex``,
 no shell ever runs them) and the rules of what params may hold (``check_params``: a launcher's only
 ``arg:=value``; no item's the ROS specials that redirect a process); the RDAPI token roles (``TOKEN_ROLES``).
@@ -90,6 +91,13 @@ class UnsupportedMediaType(CommandError):
     """A request body not sent as ``application/json`` (HTTP 415)."""
 
     status = 415
+
+
+class Unavailable(CommandError):
+    """This master cannot serve the call: a part of it is not installed (HTTP 503; ``/metrics`` without
+    prometheus_client). Not the caller's mistake, but said as one sentence like the others."""
+
+    status = 503
 
 
 def _show(value, limit=40):

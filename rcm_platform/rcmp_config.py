@@ -16,7 +16,10 @@ This is the package's bottom layer: it imports no other module of ``rcm_platform
   ``rdapi_address`` (the master's RDAPI address: ``ext_address`` or ``ext_interface``'s), looked up with
   netifaces, and ``master_address_from`` (a robot's default ``ip_master``: its own address with the last octet 1).
 - the platform's name rule (``NAME_RE``, ``MAX_NAME_LENGTH``, ``is_name``): an instance's configured ``name`` and
-  every name the RDAPI takes follow it (``rcmp_command.validate_name`` applies it to user input).
+  every name the RDAPI takes follow it (``rcmp_command.validate_name`` applies it to user input);
+- the platform folder's checks (``folder_problem``: missing, a file or another kind, unreachable, not readable, not
+  writable where the command writes) and the exit statuses every ``rcmp_n`` command uses (``EXIT_OK``,
+  ``EXIT_FAILED``, ``EXIT_USAGE``, ``EXIT_MISSING``; ``EXIT_STATUSES`` is the text ``--help`` shows).
 """
 
 from __future__ import annotations
@@ -25,8 +28,10 @@ import configparser
 import dataclasses
 import ipaddress
 import os
+import pwd
 import re
 import socket
+import stat
 from typing import Optional
 
 AGENT_ROLES = ("master", "robot", "server")
@@ -45,6 +50,99 @@ def is_name(value):
 
 class ConfigError(Exception):
     """A configuration problem; ``str()`` is one line naming the file, the key and the problem."""
+
+
+# -- exit statuses of every rcmp_n command (the agent, vpn, token) --------------------------------------------------
+
+EXIT_OK = 0        # done (the agent: stopped by SIGTERM or SIGINT)
+EXIT_FAILED = 1    # asked rightly, but it could not be done now: the state forbids it or the system refused
+EXIT_USAGE = 2     # bad usage or configuration: command line, configuration file, platform folder
+EXIT_MISSING = 3   # a package the command needs is not installed: the line names it
+EXIT_STATUSES = ("Exit status: 0 done (the agent: stopped by SIGTERM or SIGINT); 1 it could not be done (a name "
+                 "that exists already or is unknown, a port taken, a write refused: nothing was changed); 2 bad "
+                 "usage or configuration (the command line, the configuration file, the platform folder: missing, "
+                 "not a folder, not readable or writable, of the wrong role, holding damaged files); 3 a package "
+                 "the command needs is not installed (the line names it). Errors are one line on stderr.")
+
+
+# -- the platform folder --------------------------------------------------------------------------------------------
+
+_KINDS = ((stat.S_ISREG, "a file"), (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"))
+
+
+def _user():
+    try:
+        return pwd.getpwuid(os.geteuid()).pw_name
+    except KeyError:
+        return f"uid {os.geteuid()}"
+
+
+def _owner_mode(path):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return ""
+    try:
+        owner = pwd.getpwuid(st.st_uid).pw_name
+    except KeyError:
+        owner = f"uid {st.st_uid}"
+    return f" (owner {owner}, mode {stat.S_IMODE(st.st_mode):04o})"
+
+
+def _blocking_parent(path):
+    """The first folder on the way to ``path`` that is not a folder or cannot be entered: (path, sentence)."""
+    current = os.sep
+    for part in [p for p in path.split(os.sep) if p][:-1]:
+        current = os.path.join(current, part)
+        try:
+            st = os.stat(current)
+        except FileNotFoundError:
+            return current, "does not exist"
+        except OSError:
+            continue
+        if not stat.S_ISDIR(st.st_mode):
+            kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a folder")
+            return current, f"is {kind}, not a folder"
+        if not os.access(current, os.X_OK):
+            return current, f"cannot be entered by user {_user()}{_owner_mode(current)}"
+    return None, None
+
+
+def folder_problem(path, write=False, what="the platform folder"):
+    """Why ``path`` cannot serve as ``what`` (a sentence naming it, to follow ``path: ``), or None when it can:
+    it does not exist, is a file (or another kind), lies below a file or a folder that cannot be entered, cannot
+    be read, or (``write``) cannot be written by this user or lies on a read-only file system."""
+    path = os.path.abspath(path)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        if os.path.islink(path):
+            return f"{what} is a symbolic link to {os.readlink(path)!r}, which does not exist"
+        parent, why = _blocking_parent(path)
+        if parent is not None and why != "does not exist":
+            return f"{what} cannot exist: {parent} {why}"
+        return f"{what} does not exist"
+    except (NotADirectoryError, PermissionError) as exc:
+        parent, why = _blocking_parent(path)
+        verb = "cannot exist" if isinstance(exc, NotADirectoryError) else "cannot be reached"
+        return f"{what} {verb}: {parent} {why}" if parent else f"{what} {verb}"
+    except OSError as exc:
+        return f"{what} cannot be looked at: {exc.strerror or exc}"
+    if not stat.S_ISDIR(st.st_mode):
+        kind = next((name for test, name in _KINDS if test(st.st_mode)), "not a folder")
+        return f"{what} is {kind}, not a folder"
+    if not os.access(path, os.R_OK | os.X_OK):
+        return f"{what} cannot be read by user {_user()}{_owner_mode(path)}"
+    if write and not os.access(path, os.W_OK):
+        try:
+            read_only = bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+        except OSError:
+            read_only = False
+        if read_only:
+            return f"{what} is on a read-only file system"
+        return f"{what} cannot be written by user {_user()}{_owner_mode(path)}"
+    return None
 
 
 @dataclasses.dataclass
@@ -278,8 +376,9 @@ def _host_name():
 def load_config(home):
     """Read and validate the configuration of the agent living in ``home``; raise ConfigError on any problem."""
     home = os.path.abspath(home)
-    if not os.path.isdir(home):
-        raise ConfigError(f"{home}: the platform folder does not exist")
+    problem = folder_problem(home)
+    if problem:
+        raise ConfigError(f"{home}: {problem}")
     robot_file = os.path.join(home, "init.cfg")
     master_file = os.path.join(home, ".init.cfg")
     if os.path.exists(robot_file):
@@ -342,10 +441,10 @@ def master_address_from(own_address):
 
 
 def _interface_ipv4(interface):
+    import netifaces   # without it, ImportError: rcmp_node says which package to install (rcmp_deps)
     try:
-        import netifaces
         addresses = netifaces.ifaddresses(interface).get(netifaces.AF_INET, [])
-    except (ImportError, ValueError):
+    except ValueError:
         return None
     for entry in addresses:
         if entry.get("addr"):

@@ -153,11 +153,16 @@ class AgentSession:
         self.address = address
         self.robot = robot
         self.ended = False
+        self.hello_at = peer.info.get("hello_at", agent.reactor.seconds())   # when its hello arrived
+        self.paired_once = False     # its first pairing in this session was timed
         self.watchdog = rcmp_wd.Watchdog(
             agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
             send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
             last_heard=lambda: peer.last_heard, on_gone=self._gone,
-            name=f"{self.what} {name}")
+            name=f"{self.what} {name}", on_miss=lambda: self._count("heartbeat_misses"))
+
+    def _count(self, what):
+        self.agent.counters[f"{what}_{self.what}"] += 1
 
     def start_items(self, ss_name, ros_master_uri, items, start_ros_master_port=None):
         return self.peer.request("start_items", {
@@ -177,6 +182,7 @@ class AgentSession:
         return d.addCallback(lambda body: body.get("tails") if isinstance(body.get("tails"), dict) else {})
 
     def _gone(self, silent):
+        self._count("heartbeat_timeouts")
         self.peer.abort(f"no heartbeat for {silent:.1f} s")
 
     def __repr__(self):
@@ -230,7 +236,10 @@ class MasterAgent(service.Service):
         self.max_starting_spaces = config.max_starting_spaces or default_max_starting_spaces()
         self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
         self._starting = {}          # robot name -> session whose space is being built now
-        self.counters = collections.Counter()        # sessions opened / ended, hellos refused by code, ...
+        self.counters = collections.Counter()        # sessions opened / ended, hellos refused by code, heartbeats
+                                                     # missed and timed out per kind of peer (robot, server), ...
+        self.timing_observers = []   # fn(what, seconds): "hello" (an accepted hello, answered in seconds) and
+                                     # "pairing" (a robot's first pairing in a session, seconds after its hello)
         # provisioned robots known to exist (name -> {"pi_name", "service_logic"}), so that a fleet's hellos after
         # a restart need no SQLite read: filled at start and on each successful lookup; a removal (only through
         # remove(), under the robot's lock, like the hello's check) takes its name out first
@@ -437,7 +446,7 @@ class MasterAgent(service.Service):
     def _hello(self, peer, body):
         if peer.info.get("session") is not None or peer.info.get("hello_pending"):
             raise ic.Refused("hello was already said on this connection", code="bad_request")
-        started = self.reactor.seconds()
+        started = peer.info["hello_at"] = self.reactor.seconds()
         peer.info["hello_pending"] = True
         try:
             answer = yield self._accept(peer, body)
@@ -447,10 +456,18 @@ class MasterAgent(service.Service):
             raise
         finally:
             peer.info["hello_pending"] = False
+        took = self.reactor.seconds() - started
         log.info("%s %s connected from %s (hello answered in %.3f s)", "robot" if body["robot"] else "server",
-                 body["name"], peer.host,
-                 self.reactor.seconds() - started)
+                 body["name"], peer.host, took)
+        self._timed("hello", took)
         return answer
+
+    def _timed(self, what, seconds):
+        for observer in list(self.timing_observers):
+            try:
+                observer(what, seconds)
+            except Exception:
+                log.exception("timing observer of %s failed", what)
 
     @defer.inlineCallbacks
     def _accept(self, peer, body):
@@ -703,9 +720,13 @@ class MasterAgent(service.Service):
 
     def _on_state(self, pi_name, paired, space):
         """ServiceSpaceManager callback: pairing of ``pi_name`` changed."""
-        if pi_name not in self.sessions:
+        session = self.sessions.get(pi_name)
+        if session is None:
             return
         log.info("robot %s %s", pi_name, "paired" if paired else "not paired")
+        if paired and not session.paired_once:
+            session.paired_once = True
+            self._timed("pairing", self.reactor.seconds() - session.hello_at)
         if space is not None:
             self._write(self.data.set_service_space, pi_name, getattr(space, "ros_master_uri", None),
                         getattr(space, "inbound_port", None))

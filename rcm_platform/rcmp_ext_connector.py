@@ -20,6 +20,11 @@ Also owns who may call it (CONTRACTS §10, docs/SECURITY.md):
   ``rcmp_inter_communication.ConnectionCaps``, as the agent port's), a 503 to the rest; idle
   connections closed after ``idle_timeout`` and a request whose headers and body take longer than
   ``request_deadline`` dropped, so slow clients cannot hold it.
+
+And what it tells about itself: ``/metrics`` (a read route like the others, given a ``metrics`` object by
+``rcmp_node``: ``rcmp_metrics`` renders it) and ``Rdapi.request_observers``, told of every finished request by its
+route (``route_label``: one of the routes, ``/console/``, ``/console/api/`` or ``other``; never the raw path),
+method (``METHOD_LABELS`` or ``other``), status and duration.
 """
 
 import hashlib
@@ -28,6 +33,7 @@ import json
 import logging
 import re
 import secrets
+import time
 
 from twisted.application import service
 from twisted.internet import defer, endpoints, protocol, task, threads
@@ -66,6 +72,10 @@ MAX_CONNECTIONS = 256       # open RDAPI connections at once (the agent's fd lim
 MAX_PER_ADDRESS = 32        # of which from one source address
 IDLE_TIMEOUT = 60.0         # seconds a keep-alive connection may sit idle
 REQUEST_DEADLINE = 15.0     # seconds from a request's first line to its last body byte
+
+METHOD_LABELS = ("GET", "HEAD", "POST", "OPTIONS")   # request_observers get these, "other" for any other method
+UNKNOWN_ROUTE = "other"     # request_observers' route for a path that is no route
+LOST = "lost"               # request_observers' status for a request whose client left before any answer
 
 TOKEN_REFRESH = 1.0         # seconds between re-reads of the token table
 TOKEN_RE = re.compile(r"[A-Za-z0-9._~+/=-]{1,256}\Z")
@@ -188,11 +198,14 @@ _TOO_DEEP = object()
 
 
 class Route:
-    """One path: the handler per method and the query parameters it takes (name -> required)."""
+    """One path: the handler per method and the query parameters it takes (name -> required). A ``raw`` route's
+    handler fires with ``(content type, bytes)``, sent as they are (``/metrics``), instead of a JSON answer's
+    ``reason``."""
 
-    def __init__(self, handlers, query=None):
+    def __init__(self, handlers, query=None, raw=False):
         self.handlers = handlers
         self.query = query or {}
+        self.raw = raw
 
     @property
     def allowed(self):
@@ -203,12 +216,13 @@ class Rdapi(resource.Resource):
     """The whole RDAPI as one leaf resource with a table of routes.
 
     ``tokens``: a ``Tokens`` (None: the RDAPI is open); ``allowed_origins``: origins (``scheme://host[:port]``)
-    whose pages may write besides the RDAPI's own.
+    whose pages may write besides the RDAPI's own; ``metrics``: what ``GET /metrics`` asks (``scrape()`` ->
+    Deferred((content type, bytes)), or failing with a CommandError), None for no such route.
     """
 
     isLeaf = True
 
-    def __init__(self, platform, service, tokens=None, allowed_origins=(), console=None):
+    def __init__(self, platform, service, tokens=None, allowed_origins=(), console=None, metrics=None):
         super().__init__()
         self.platform = platform
         self.service = service
@@ -230,6 +244,9 @@ class Rdapi(resource.Resource):
             "/service_space/read": Route({"GET": lambda q, b: service.service_space(q["ss_name"])},
                                          query={"ss_name": True}),
         }
+        if metrics is not None:
+            self.routes["/metrics"] = Route({"GET": lambda q, b: metrics.scrape()}, raw=True)
+        self.request_observers = []   # fn(route, method, status, seconds) once each request finished
 
     # -- who may call ------------------------------------------------------------------------------------------
 
@@ -294,10 +311,35 @@ class Rdapi(resource.Resource):
 
     # -- requests ----------------------------------------------------------------------------------------------
 
+    def route_label(self, path):
+        """What ``request_observers`` are told instead of ``path``: a bounded set of words."""
+        if path in self.routes:
+            return path
+        if self.console is not None and (path == "/console" or path.startswith("/console/")):
+            return "/console/api/" if path.startswith("/console/api/") else "/console/"
+        return UNKNOWN_ROUTE
+
+    def _observe(self, request, path, method):
+        route = self.route_label(path)
+        method = method if method in METHOD_LABELS else "other"
+        started = time.monotonic()
+
+        def finished(result):
+            lost = result is not None and not getattr(request, "startedWriting", False)
+            status = LOST if lost else str(request.code)
+            for observer in list(self.request_observers):
+                try:
+                    observer(route, method, status, time.monotonic() - started)
+                except Exception:
+                    log.exception("request observer failed")
+        request.notifyFinish().addBoth(finished)
+
     def render(self, request):
         self._cors(request)
         method = request.method.decode("latin-1")
         path = request.path.decode("latin-1")
+        if self.request_observers:
+            self._observe(request, path, method)
         try:
             if self.console is not None and (path == "/console" or path.startswith("/console/")):
                 route = self._console_route   # GET only; its API behind the tokens like any read
@@ -370,6 +412,14 @@ class Rdapi(resource.Resource):
 
         def ok(reason):
             if finished:
+                return
+            if route.raw:
+                content_type, data = reason
+                request.setResponseCode(200)
+                request.setHeader(b"Content-Type", content_type.encode("latin-1"))
+                request.setHeader(b"Content-Length", str(len(data)).encode())
+                request.write(data)
+                request.finish()
                 return
             if method == "POST":
                 log.info("RDAPI %s %s: OK: %s", method, path, reason)
@@ -593,15 +643,17 @@ class RdapiSite(server.Site):
 
 
 def make_site(platform, service, max_body=MAX_BODY, tokens=None, allowed_origins=(), console=None,
-              **limits):
+              metrics=None, **limits):
     """The Twisted site serving the RDAPI with ``PlatformCommands`` ``platform`` and ``ServiceCommands`` ``service``.
 
     ``tokens``: a ``Tokens`` or None (open); ``console``: the ``rcmp_console.ConsoleResource`` served under
-    /console/ (its static files public, its API behind the tokens like any read); ``limits``:
-    ``max_connections``, ``max_per_address``, ``idle_timeout``, ``request_deadline`` of ``RdapiSite``.
+    /console/ (its static files public, its API behind the tokens like any read); ``metrics``: what serves
+    ``GET /metrics`` (``rcmp_metrics``), None for no such route; ``limits``: ``max_connections``,
+    ``max_per_address``, ``idle_timeout``, ``request_deadline`` of ``RdapiSite``. The ``Rdapi`` is
+    ``site.resource``.
     """
     site = RdapiSite(Rdapi(platform, service, tokens=tokens, allowed_origins=allowed_origins,
-                                   console=console), **limits)
+                           console=console, metrics=metrics), **limits)
 
     class Request(RdapiRequest):
         pass

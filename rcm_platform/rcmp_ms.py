@@ -530,7 +530,8 @@ class _SpaceHost:
         reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
         for item in remote:
             item.remote = reports.get((item.kind, item.name)) or {
-                **item.report(), "state": FAILED, "error": f"the {what} did not report this item"}
+                **item.report(), "state": FAILED, "error": f"the {what} did not report this item",
+                "failure": "not_reported"}
             item.remote.setdefault("i_name", item.i_name)
             item.nodes = list(item.remote.get("nodes") or [])
             item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
@@ -566,7 +567,7 @@ class _SpaceHost:
             output = item.process.useful_output()
             item.fail(f"node(s) {', '.join(n.lstrip('/') for n in missing)} of launcher {item.name} did not "
                       f"register with the ROS master within {self.launcher_nodes_timeout:g} s"
-                      + (f": {output}" if output else ""))
+                      + (f": {output}" if output else ""), "not_registered")
 
     @defer.inlineCallbacks
     def _prepare(self, space, item):
@@ -576,7 +577,7 @@ class _SpaceHost:
                 try:
                     item.special.prepare(self, space, item)
                 except SpaceError as exc:
-                    item.fail(str(exc))
+                    item.fail(str(exc), "port")
                     space.reason = str(exc)
             return
         try:
@@ -593,7 +594,7 @@ class _SpaceHost:
                 _SpaceHost._roslaunch_imported = True
                 nodes = launcher_nodes(item.package, item.type_or_file, item.params)
         except Exception as exc:  # roslaunch's RLException and its loader's errors: the message says why
-            item.fail(f"roslaunch cannot load {item.package}/{item.type_or_file}: {exc}")
+            item.fail(f"roslaunch cannot load {item.package}/{item.type_or_file}: {exc}", "launch_file")
             return
         item.nodes = [n for n, _, _ in nodes]
         item.node_types = {n: (p, t) for n, p, t in nodes}
@@ -607,7 +608,7 @@ class _SpaceHost:
         try:
             argv = item.spawn_argv(env, self.executables)
         except CommandError as exc:  # params that do not split (validation lets none through)
-            item.fail(f"cannot split the params {item.params!r}: {exc}")
+            item.fail(f"cannot split the params {item.params!r}: {exc}", "params")
             return
         item.process = self.table.spawn(space.key(item.kind, item.name), argv, env, f"{space.name}-{item.name}",
                                         user=self.run_as)
@@ -894,6 +895,7 @@ class ServiceSpaceManager(_SpaceHost):
         if not space.cancelled:
             if space.paired:
                 self._notify(space)
+            self._changed(space)     # the robot's and server's item reports came with the answers
             level = logging.INFO if space.paired else logging.WARNING
             log.log(level, "service space %s: %s", pi_name,
                     "paired" if space.paired else f"not paired: {space.why_unpaired()}")
@@ -1053,7 +1055,7 @@ class ItemRunner(_SpaceHost):
         if problem:
             for item in parsed:
                 if item.process is None and item.error is None:
-                    item.fail(problem)
+                    item.fail(problem, "space")
         space.told.update((i.kind, i.name) for i in parsed if i.state == FAILED)
         return {"ros_master_uri": space.ros_master_uri, "items": [i.report() for i in parsed],
                 "reason": space.reason, "inbound_port": space.inbound_port}

@@ -4,14 +4,18 @@ Owns:
 - the command line (``--home``, ``--log-level``, ``--no-stderr``, ``--help``, the ``vpn`` subcommand whose
   work is ``rcmp_vpn``'s, and ``rcmp_n token add NAME --role read|admin`` / ``token list`` / ``token revoke
   NAME``, which manage the RDAPI's tokens in the master's robotics data (the token is printed once; the agent
-  need not be stopped)) and ``main()``: a bad configuration (``rcmp_config.load_config``'s ``ConfigError``)
-  stops the agent with its one line, exit status 2;
+  need not be stopped)) and ``main()``: every command ends with one of the exit statuses of ``rcmp_config``
+  (``EXIT_STATUSES``, shown by ``--help``) and every error is one line on stderr: a bad configuration or
+  platform folder (``ConfigError``, ``folder_problem``) exit 2, a module that cannot be imported (anywhere in
+  ``main``, ``--help`` included) or that the agent will need (``rcmp_deps.require``: ROS's loader, netifaces)
+  the line ``rcmp_deps.missing_line`` gives, naming the package to install, exit 3;
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
   Twisted's own log goes to the same place;
 - the agent's own files as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data tightened
   (``tighten_files``); at start the catkin workspace named by ``RCMP_WS`` goes into the agent's environment
   (``rcmp_service_item.apply_workspace``);
-- the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, then the RDAPI listener;
+- the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, the console, the metrics
+  (``rcmp_metrics``, served at ``/metrics``), then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
   SIGTERM/SIGINT before the process exits 0. It builds the process table, the space runtime, the address
   function and the items' user (``rcmp_service_item.resolve_run_as``) and passes them in.
@@ -26,7 +30,8 @@ import signal
 import sqlite3
 import sys
 
-from .rcmp_config import ConfigError, load_config, platform_address, rdapi_address
+from .rcmp_config import (EXIT_FAILED, EXIT_MISSING, EXIT_OK, EXIT_STATUSES, EXIT_USAGE, ConfigError,
+                          folder_problem, load_config, platform_address, rdapi_address)
 
 PROG = "rcmp_n"
 DEFAULT_HOME = "/opt/rcm-platform"
@@ -113,7 +118,7 @@ def _top_service(config, reactor, table):
 
 def build_master(config, reactor, table=None):
     """The master: robotics data, process table, MasterAgent, then the RDAPI listener, as one MultiService."""
-    from . import rcmp_console, rcmp_event, rcmp_ms, rcmp_vpn
+    from . import rcmp_console, rcmp_event, rcmp_metrics, rcmp_ms, rcmp_vpn
     from .rcmp_command import CommandError
     from .rcmp_ext_connector import TlsError, Tokens, make_site, rdapi_service, tls_options
     from .rcmp_platform_command import PlatformCommands
@@ -150,10 +155,14 @@ def build_master(config, reactor, table=None):
     tokens = Tokens(data, reactor)
     platform = PlatformCommands(data, robots=agent)
     console = rcmp_console.Console(reactor, data, platform, agent.spaces, table, describe=agent.describe)
+    metrics = rcmp_metrics.make_metrics(agent, spaces, platform)   # without prometheus_client: /metrics says so
     site = make_site(platform, ServiceCommands(data, spaces=agent), tokens=tokens,
-                     allowed_origins=config.allowed_origins, console=rcmp_console.ConsoleResource(console))
+                     allowed_origins=config.allowed_origins, console=rcmp_console.ConsoleResource(console),
+                     metrics=metrics)
+    metrics.watch_site(site)
     agent.setServiceParent(top)
     rcmp_console.ConsoleService(console).setServiceParent(top)
+    metrics.setServiceParent(top)  # its hooks are in place before the first hello and the first request
     tokens.setServiceParent(top)   # loaded before the listener starts: never open by mistake
     rdapi_service(site, config.ext_port, public_ip, reactor=reactor, tls=tls).setServiceParent(top)
     top.rdapi_address = (public_ip, config.ext_port)
@@ -202,7 +211,7 @@ def parse_args(argv):
                     "(robot=no); without it, as the master (optional HOME/.init.cfg) serving the RDAPI. Runs in "
                     "the foreground until SIGTERM or SIGINT, then stops everything it started.",
         epilog="'rcmp_n token add NAME --role read|admin', 'rcmp_n token list' and 'rcmp_n token revoke NAME' "
-               "manage the RDAPI's bearer tokens on the master (docs/SECURITY.md).")
+               "manage the RDAPI's bearer tokens on the master (docs/SECURITY.md). " + EXIT_STATUSES)
     home_help = ("the platform folder: configuration, robotics_data.db, log/ "
                  f"(default: $RCMP_HOME, else {DEFAULT_HOME})")
     parser.add_argument("--home", metavar="DIR", default=os.environ.get("RCMP_HOME", DEFAULT_HOME), help=home_help)
@@ -218,14 +227,17 @@ def parse_args(argv):
     rcmp_vpn.add_parser(commands, DEFAULT_HOME)
     token = commands.add_parser("token", help="manage the RDAPI's bearer tokens (master only): add, list, revoke",
                                 description="The RDAPI's bearer tokens. Once one exists, every RDAPI call but "
-                                            "GET / needs 'Authorization: Bearer TOKEN'; only a hash is kept.")
+                                            "GET / needs 'Authorization: Bearer TOKEN'; only a hash is kept.",
+                                epilog=EXIT_STATUSES)
     actions = token.add_subparsers(dest="token_command", metavar="add|list|revoke", required=True)
-    add = actions.add_parser("add", help="make a token and print it (once: only its hash is kept)")
+    add = actions.add_parser("add", help="make a token and print it (once: only its hash is kept)",
+                             epilog=EXIT_STATUSES)
     add.add_argument("name", metavar="NAME", help="the token's name (a letter, then letters, digits, _)")
     add.add_argument("--role", required=True, choices=TOKEN_ROLES,
                      help="read: GET calls only; admin: every call")
-    actions.add_parser("list", help="list the tokens (name, role, when made)")
-    revoke = actions.add_parser("revoke", help="forget a token; the running agent refuses it within a second")
+    actions.add_parser("list", help="list the tokens (name, role, when made)", epilog=EXIT_STATUSES)
+    revoke = actions.add_parser("revoke", help="forget a token; the running agent refuses it within a second",
+                                epilog=EXIT_STATUSES)
     revoke.add_argument("name", metavar="NAME")
     for sub in (token, add, revoke, actions.choices["list"]):
         sub.add_argument("--home", metavar="DIR", default=argparse.SUPPRESS, help=home_help)
@@ -240,15 +252,20 @@ def token_command(args):
     try:
         config = load_config(args.home)
     except ConfigError as exc:
-        return _fail(str(exc), 2)
+        return _fail(str(exc), EXIT_USAGE)
     if config.role != "master":
         return _fail(f"{config.config_file}: this is a robot's or server VM's folder; RDAPI tokens belong to the "
-                     f"master", 2)
+                     f"master", EXIT_USAGE)
+    problem = folder_problem(config.home, write=args.token_command != "list")
+    if problem:
+        return _fail(f"{config.home}: {problem}", EXIT_USAGE)
     os.umask(0o027)  # a new robotics_data.db is not readable by others
     try:
         data = RoboticsData(os.path.join(config.home, "robotics_data.db"), forget_live_state=False)
-    except (DataError, sqlite3.Error) as exc:
-        return _fail(str(exc).splitlines()[0], 1)
+    except DataError as exc:       # a file that is not robotics data: the folder's problem
+        return _fail(str(exc).splitlines()[0], EXIT_USAGE)
+    except sqlite3.Error as exc:
+        return _fail(str(exc).splitlines()[0], EXIT_FAILED)
     try:
         if args.token_command == "add":
             name = validate_name(args.name, "NAME")
@@ -270,12 +287,12 @@ def token_command(args):
             sys.stderr.write(f"{PROG}: token '{name}' revoked" +
                              ("" if left else "; no token is left, so the RDAPI is open again") + "\n")
     except CommandError as exc:
-        return _fail(str(exc), 2 if exc.status == 400 else 1)
+        return _fail(str(exc), EXIT_USAGE if exc.status == 400 else EXIT_FAILED)
     except sqlite3.Error as exc:
-        return _fail(f"{data.path}: {exc}", 1)
+        return _fail(f"{data.path}: {exc}", EXIT_FAILED)
     finally:
         data.close()
-    return 0
+    return EXIT_OK
 
 
 def _log_to_file_only(message):
@@ -298,17 +315,47 @@ def _vpn_default_remote(home):
     try:
         config = load_config(home)
     except ConfigError as exc:
-        raise rcmp_vpn.VpnError(str(exc)) from None
+        raise rcmp_vpn.VpnError(str(exc), EXIT_USAGE) from None
     remote = rdapi_address(config)
     if remote is None:
         raise rcmp_vpn.VpnError(f"no IPv4 address on the external interface '{config.ext_interface}' to put in "
-                                f"client files: give --remote HOST")
+                                f"client files: give --remote HOST", EXIT_USAGE)
     return remote
 
 
 def main(argv=None):
-    """Run the agent; returns the exit status (0 after SIGTERM/SIGINT, 2 on a configuration error, 1 otherwise)."""
-    args = parse_args(sys.argv[1:] if argv is None else argv)
+    """Run the command (the agent without one); returns its exit status (``rcmp_config.EXIT_STATUSES``)."""
+    try:
+        return _main(sys.argv[1:] if argv is None else argv)
+    except ImportError as exc:   # Twisted, cryptography, ...: one line naming the package, also for --help
+        from . import rcmp_deps
+        return _fail(rcmp_deps.missing_line(exc), EXIT_MISSING)
+
+
+def _written_folder(config):
+    """The folder the agent writes first (the master: the platform folder, for robotics_data.db; the others: log/,
+    or the platform folder while log/ does not exist) and why it cannot, or (None, None)."""
+    log_dir = os.path.join(config.home, "log")
+    if config.role != "master" and os.path.lexists(log_dir):
+        return log_dir, folder_problem(log_dir, write=True, what="the agent's log folder")
+    return config.home, folder_problem(config.home, write=True)
+
+
+def _agent_needs(config):
+    """The modules the agent imports late (ROS's launch-file loader, netifaces for an interface's address, pyOpenSSL
+    for an RDAPI over HTTPS): checked at start, so that a missing one is one line now rather than a failing item,
+    or an agent that stops after its VPN came up, later."""
+    from . import rcmp_deps
+    needs = list(rcmp_deps.ROS_MODULES)
+    if config.vpn_address is None or (config.role == "master" and config.ext_address is None):
+        needs.append("netifaces")
+    if config.role == "master" and config.rdapi_tls_cert:
+        needs.append("OpenSSL")
+    return needs
+
+
+def _main(argv):
+    args = parse_args(argv)
     os.umask(UMASK)
     if args.command == "vpn":
         from . import rcmp_vpn
@@ -318,23 +365,32 @@ def main(argv=None):
     try:
         config = load_config(args.home)
     except ConfigError as exc:
-        return _fail(str(exc), 2)
+        return _fail(str(exc), EXIT_USAGE)
+    folder, problem = _written_folder(config)
+    if problem:
+        return _fail(f"{folder}: {problem}", EXIT_USAGE)
     try:
         setup_logging(config, getattr(logging, args.log_level), to_stderr=not args.no_stderr)
     except OSError as exc:
-        return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", 1)
+        return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", EXIT_FAILED)
     tighten_files(config.home)
     from .rcmp_service_item import apply_workspace
     apply_workspace(os.environ)
+    from . import rcmp_deps
+    try:
+        rcmp_deps.require(_agent_needs(config))
+    except rcmp_deps.MissingDependency as exc:
+        _log_to_file_only(f"cannot start: {exc}")
+        return _fail(str(exc), EXIT_MISSING)
 
     from twisted.internet import reactor
     from twisted.internet.error import ReactorNotRunning
-    outcome = {"status": 0}
+    outcome = {"status": EXIT_OK}
 
     def late_error(message):  # the agent could not start once the managed VPN was up
         _log_to_file_only(f"cannot start: {message}")
         sys.stderr.write(f"{PROG}: cannot start the {config.role}: {message}\n")
-        outcome["status"] = 2
+        outcome["status"] = EXIT_USAGE
         try:
             reactor.stop()
         except ReactorNotRunning:
@@ -344,7 +400,7 @@ def main(argv=None):
         top = build_agent(config, reactor, on_error=late_error)
     except StartupError as exc:
         _log_to_file_only(f"cannot start: {exc}")
-        return _fail(str(exc), 2)
+        return _fail(str(exc), EXIT_USAGE)
     # after the imports (a fleet of agents starting at once on one machine should not import ahead of the
     # agents already serving), before any thread (niceness is per thread)
     from . import rcmp_process
@@ -360,7 +416,7 @@ def main(argv=None):
             message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             _log_to_file_only(f"cannot start: {message}")
             sys.stderr.write(f"{PROG}: cannot start the {config.role}: {message}\n")
-            outcome["status"] = 1
+            outcome["status"] = EXIT_FAILED
             try:
                 reactor.stop()
             except ReactorNotRunning:  # a signal already began the shutdown

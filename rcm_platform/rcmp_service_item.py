@@ -7,7 +7,9 @@ A newcomer's question "where does a service item get its command line, environme
   ``rcmp_command.validate_service_item``'s result (``ServiceItem.from_entry``, ``items_of_logic``), so the runtime
   never sees an unchecked item (a robot refuses a malformed item from the master with the validation's sentence).
   Its state is its process's (``rcmp_process`` words), the robot's report when it runs there, or its own
-  ``starting`` / ``failed`` while it has no process.
+  ``starting`` / ``failed`` while it has no process. A failed item says why in a sentence (``current_error``) and
+  in one word of the closed set ``ITEM_FAILURES`` (``failure``; item reports carry it as ``"failure"``), which
+  the master counts (``/metrics``).
 - **its command line**: ``ServiceItem.argv`` (``node_argv``: ``rosrun PKG TYPE PARAMS __name:=NAME``;
   ``launcher_argv``: ``roslaunch --wait ... PKG FILE PARAMS``; params split by ``rcmp_command.split_params``, the
   only splitter, never a shell), changed by its special hooks when it is one of ``SPECIAL_ITEMS`` (FIROS gets
@@ -253,6 +255,21 @@ class RcmDriverItem(SpecialItem):
         return host.say_goodbye_to_driver(space)
 
 
+# Why an item failed, a closed set (counted by the master for /metrics, so it must stay small; "other" for a
+# report without one, or with a word not in the set, from another agent):
+ITEM_FAILURES = (
+    "spawn",            # its process could not be started
+    "exited",           # its process ended by itself (before or after it started)
+    "not_registered",   # a launcher's nodes did not register with the space's ROS master in time
+    "launch_file",      # roslaunch cannot load the launch file (missing package, file or arg)
+    "params",           # its params do not split into words
+    "port",             # no port for it (FIROS's inbound port, rcm_driver's local port)
+    "space",            # its service space failed around it before it started (its ROS master, ...)
+    "not_reported",     # the agent that should run it did not report it
+    "other",
+)
+
+
 # (package, node type) -> hooks; only nodes (kind "node") are special
 SPECIAL_ITEMS = {
     ("firos", "core.py"): FirosItem(),
@@ -283,6 +300,7 @@ class ServiceItem:
         self.remote = None      # the robot's item report, when run there
         self.own_state = STARTING
         self.error = None       # set when the item failed before or without a process
+        self.why_failed = None  # its ITEM_FAILURES word then
         self.nodes = []         # ROS node names (the node itself, or the launcher's nodes)
         self.node_types = {}    # launcher node name -> (package, type)
         self.driver_port = None
@@ -341,9 +359,25 @@ class ServiceItem:
             return self.error
         return self.process.error if self.process is not None else None
 
-    def fail(self, error):
+    def fail(self, error, failure="other"):
+        """The item failed before or without a process: ``error`` says why, ``failure`` in one ITEM_FAILURES word."""
         self.error = error
+        self.why_failed = failure if failure in ITEM_FAILURES else "other"
         self.own_state = FAILED
+
+    @property
+    def failure(self):
+        """Why it failed, one word of ITEM_FAILURES; None while it has not failed."""
+        if self.state != FAILED:
+            return None
+        if self.remote is not None:
+            word = self.remote.get("failure")
+            return word if isinstance(word, str) and word in ITEM_FAILURES else "other"
+        if self.error is not None:
+            return self.why_failed
+        if self.process is not None:
+            return "spawn" if self.process.pid is None else "exited"
+        return "other"
 
     def report(self):
         """The item report of docs/DESIGN.md (what a robot returns to the master)."""
@@ -351,8 +385,8 @@ class ServiceItem:
             return dict(self.remote)
         return {"kind": self.kind, "name": self.name, "package": self.package,
                 "type_or_file": self.type_or_file, "side": self.side, "i_name": self.i_name,
-                "state": self.state, "error": self.current_error, "nodes": list(self.nodes),
-                "node_types": {n: list(t) for n, t in self.node_types.items()}}
+                "state": self.state, "error": self.current_error, "failure": self.failure,
+                "nodes": list(self.nodes), "node_types": {n: list(t) for n, t in self.node_types.items()}}
 
 
 def items_of_logic(service_logic, i_name=None):

@@ -11,9 +11,10 @@ Owns:
 - certificate roles: a client certificate says what its holder may be, a robot (``vpn client NAME``) or a server
   VM (``vpn client NAME --server``), in its subject's organizational unit (``OU=robot`` / ``OU=server``) and in
   the register; a certificate issued before roles (no OU, no ``role`` in the register) counts as a robot's;
-- the command line ``rcmp_n vpn init | client NAME [--server] | revoke NAME | list`` (``add_parser``, ``run``):
-  exit status 0 on success, 1 when the command cannot be done (one line on stderr, nothing changed), 2 for bad
-  usage;
+- the command line ``rcmp_n vpn init | client NAME [--server] | revoke NAME | list`` (``add_parser``, ``run``),
+  with the exit statuses of every ``rcmp_n`` command (``rcmp_config.EXIT_STATUSES``): 0 done, 1 it cannot be done
+  (one line on stderr, nothing changed), 2 bad usage (the command line, the platform folder: missing, not a folder,
+  a robot's), 3 a missing package (``cryptography``: ``rcmp_node`` says which);
 - OpenVPN's management interface on the Unix socket ``HOME/vpn/management.sock``: ``kill`` (revocation cuts a
   connected client at once) and ``status`` (who is connected, for ``vpn list``);
 - ``certificate_of(home, name)``: what the register says of NAME (its fixed address, its certificate's role, revoked
@@ -38,7 +39,7 @@ import socket
 import sys
 import tempfile
 
-from .rcmp_config import MAX_NAME_LENGTH, is_name
+from .rcmp_config import EXIT_FAILED, EXIT_OK, EXIT_STATUSES, EXIT_USAGE, MAX_NAME_LENGTH, folder_problem, is_name
 from .rcmp_process import FAILED, STARTING
 
 log = logging.getLogger("rcmp.vpn")
@@ -63,7 +64,12 @@ UNRECORDED_ROLE = ROBOT               # the role of a certificate issued before 
 
 
 class VpnError(Exception):
-    """A VPN command cannot be done; ``str()`` is one line. Nothing was changed."""
+    """A VPN command cannot be done; ``str()`` is one line. Nothing was changed. ``status``: the exit status,
+    ``EXIT_FAILED`` unless the command was asked wrongly (``EXIT_USAGE``)."""
+
+    def __init__(self, message, status=EXIT_FAILED):
+        super().__init__(message)
+        self.status = status
 
 
 # -- paths and the register ---------------------------------------------------------------------------------
@@ -347,13 +353,21 @@ def _host_port(value):
 
 # -- the commands -----------------------------------------------------------------------------------------
 
+def _check_home(home, command):
+    """VpnError (bad usage) unless ``home`` is a master's platform folder this user may use for ``command``
+    (``init`` writes in it; the others read it, and change ``vpn/`` under their lock)."""
+    problem = folder_problem(home, write=command == "init")
+    if problem:
+        raise VpnError(f"{home}: {problem}", EXIT_USAGE)
+    if os.path.exists(os.path.join(home, "init.cfg")):
+        raise VpnError(f"{home}: has init.cfg, so it is a robot or a server VM; 'vpn {command}' runs on the master",
+                       EXIT_USAGE)
+
+
 def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False, default_remote=None):
     """Create HOME/vpn: CA, server certificate and key, tls-crypt key, CRL, ccd/, server.conf, register."""
     home = os.path.abspath(home)
-    if not os.path.isdir(home):
-        raise VpnError(f"{home}: the platform folder does not exist")
-    if os.path.exists(os.path.join(home, "init.cfg")):
-        raise VpnError(f"{home}: has init.cfg, so it is a robot or a server VM; 'vpn init' runs on the master")
+    _check_home(home, "init")
     folder = vpn_dir(home)
     if os.path.lexists(folder) and not force:
         raise VpnError(f"{folder}: a VPN already exists (give --force to replace it: every client file issued so "
@@ -363,7 +377,7 @@ def init(home, subnet=None, port=DEFAULT_PORT, remote=None, force=False, default
         # ``default_remote(home)`` (rcmp_node passes it in: the address of ``ext_interface``) returns the address
         # or raises VpnError with its sentence; this module never imports rcmp_node (imports go one way down)
         if default_remote is None:
-            raise VpnError("no address to put in client files: give --remote HOST")
+            raise VpnError("no address to put in client files: give --remote HOST", EXIT_USAGE)
         remote = default_remote(home)
     server_address = str(next(network.hosts()))
 
@@ -846,6 +860,8 @@ def add_parser(subparsers, home_default):
     commands.add_parser("list", parents=[common], help="one line per name issued: NAME ADDRESS STATE ROLE",
                         description="One line per name issued: NAME ADDRESS connected|disconnected|revoked "
                                     "robot|server.")
+    for parser in [vpn, *commands.choices.values()]:
+        parser.epilog = EXIT_STATUSES
     return vpn
 
 
@@ -855,7 +871,7 @@ def _staged_file(output):
 
     def stage(text):
         if os.path.isdir(target):
-            raise VpnError(f"{output}: is a folder; give the client file's name")
+            raise VpnError(f"{output}: is a folder; give the client file's name", EXIT_USAGE)
         try:
             fd, tmp = tempfile.mkstemp(prefix=".rcmp-vpn-", dir=os.path.dirname(target))
             with os.fdopen(fd, "w", encoding="ascii") as f:
@@ -881,6 +897,8 @@ def run(args, out=None, err=None, default_remote=None):
     err = err or sys.stderr
     home = args.home
     try:
+        if args.vpn_command != "init":
+            _check_home(os.path.abspath(home), args.vpn_command)
         if args.vpn_command == "init":
             register = init(home, args.subnet, args.port, args.remote, args.force, default_remote)
             out.write(f"VPN created in {vpn_dir(home)}: subnet {register['subnet']}, master at "
@@ -907,9 +925,9 @@ def run(args, out=None, err=None, default_remote=None):
                 out.write(f"{name} {address} {state} {role}\n")
     except VpnError as exc:
         err.write(f"rcmp_n vpn {args.vpn_command}: {exc}\n")
-        return 1
+        return exc.status
     except OSError as exc:
         err.write(f"rcmp_n vpn {args.vpn_command}: {exc.strerror or exc}"
                   f"{': ' + exc.filename if getattr(exc, 'filename', None) else ''}\n")
-        return 1
-    return 0
+        return EXIT_FAILED
+    return EXIT_OK

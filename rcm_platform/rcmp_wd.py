@@ -6,6 +6,8 @@ if the peer has been silent for ``misses * interval`` seconds it stops and calls
 once; otherwise it sends one beat through ``send_beat()`` (a callable returning a Deferred, whose failure only
 means "not heard", never an error). A check that runs more than half an interval late means this agent itself
 was stalled: frames may be waiting unread, so the peer is judged at the next check instead. Time comes from the ``clock`` (the reactor, or ``task.Clock`` in tests).
+A check that has heard nothing from the peer since the check before it (which sent the last beat), the peer not yet
+gone, counts a missed beat: ``on_miss()`` is told (the master counts them for ``/metrics``).
 """
 
 import logging
@@ -18,7 +20,7 @@ log = logging.getLogger("rcmp.wd")
 class Watchdog:
     """Beats to one peer and declares it gone after ``misses`` intervals of silence."""
 
-    def __init__(self, clock, interval, misses, send_beat, last_heard, on_gone, name="peer"):
+    def __init__(self, clock, interval, misses, send_beat, last_heard, on_gone, name="peer", on_miss=None):
         if interval <= 0:
             raise ValueError(f"heartbeat interval must be positive, got {interval!r}")
         if misses < 1:
@@ -29,6 +31,7 @@ class Watchdog:
         self.send_beat = send_beat
         self.last_heard = last_heard
         self.on_gone = on_gone
+        self.on_miss = on_miss
         self.name = name
         self.gone = False
         self._loop = None
@@ -62,7 +65,8 @@ class Watchdog:
 
     def _tick(self):
         now = self.clock.seconds()
-        late = now - self._last_tick - self.interval
+        previous = self._last_tick      # when the last beat went out
+        late = now - previous - self.interval
         self._last_tick = now
         silent = self.silent_for()
         if late > self.interval / 2:
@@ -76,6 +80,8 @@ class Watchdog:
                 log.warning("%s silent for %.1f s (limit %.1f s): gone", self.name, silent, self.limit)
                 self.on_gone(silent)
             return
+        elif self.on_miss is not None and self.last_heard() < previous:
+            self.on_miss()
         d = self.send_beat()
         if d is not None:
             d.addErrback(lambda f: log.debug("heartbeat to %s not answered: %s", self.name, f.getErrorMessage()))

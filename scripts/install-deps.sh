@@ -11,6 +11,8 @@ PACKAGES=(
   ros-message-runtime libstd-msgs-dev libgeometry-msgs-dev libroscpp-dev cmake g++
   # the agent, the RDAPI and FIROS
   python3-twisted python3-netifaces python3-yaml sqlite3
+  # the master's /metrics (Prometheus text; a robot never needs it)
+  python3-prometheus-client
   # the platform's VPN (rcmp_vpn: PKI with python3-cryptography, OpenVPN run by the agent)
   python3-cryptography openvpn
   # tests and benchmarks

@@ -26,8 +26,10 @@ SEED_MASTER_MODULES = [
 EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
                  "rcmp_vpn.py",  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
                  # ours: split out of the seed's modules for one job each (CONTRACTS §6), master and robot zips
-                 "rcmp_config.py", "rcmp_process.py", "rcmp_service_item.py"]
-CONSOLE_MODULES = ["rcmp_console.py"]  # ours: the console (CONTRACTS §9), master zip only
+                 "rcmp_config.py", "rcmp_process.py", "rcmp_service_item.py",
+                 "rcmp_deps.py"]  # ours: the one line naming a missing package, master and robot zips
+CONSOLE_MODULES = ["rcmp_console.py",   # ours: the console (CONTRACTS §9), master zip only
+                   "rcmp_metrics.py"]   # ours: the RDAPI's /metrics, master zip only
 CONSOLE_FILES = ["rcm_platform/console/console.css", "rcm_platform/console/console.js",
                  "rcm_platform/console/index.html"]  # its static files, master zip only
 SEED_ROBOT_MODULES = [m for m in SEED_MASTER_MODULES if m not in ("rcmp_ext_connector.py", "rcmp_robotics_data.py")]
@@ -173,7 +175,7 @@ def test_robot_zip_runs_without_the_master_only_modules(tmp_path):
     code = ("import sys, rcm_platform.rcmp_node as n; c = n.load_config(sys.argv[1]); "
             "n.build_agent(c, __import__('twisted.internet.reactor', fromlist=['x'])); "
             "import rcm_platform; print(rcm_platform.__file__); "
-            "print(sorted(m for m in sys.modules if m.startswith('rcm_platform.')))")
+            "print(sorted(m for m in sys.modules if m.startswith(('rcm_platform.', 'prometheus_client'))))")
     result = subprocess.run([PYTHON, "-c", code, str(home)], capture_output=True, text=True, env=env,
                             cwd=str(tmp_path), timeout=60)
     assert result.returncode == 0, result.stderr
@@ -181,6 +183,7 @@ def test_robot_zip_runs_without_the_master_only_modules(tmp_path):
     assert "rcm_platform.rcmp_ext_connector" not in result.stdout
     assert "rcm_platform.rcmp_robotics_data" not in result.stdout
     assert "rcm_platform.rcmp_console" not in result.stdout
+    assert "rcm_platform.rcmp_metrics" not in result.stdout and "prometheus_client" not in result.stdout
 
 
 # --- the tool's rules, on a synthetic tree ---------------------------------------------------------------------
@@ -281,6 +284,7 @@ def test_robot_zip_never_holds_master_only_modules_even_when_present(tmp_path, t
     assert "rcm_platform_robot/rcm_platform/rcmp_ext_connector.py" not in listing
     assert "rcm_platform_robot/rcm_platform/rcmp_robotics_data.py" not in listing
     assert not [n for n in listing if "rcmp_console" in n or "rcm_platform/console" in n]
+    assert "rcm_platform_robot/rcm_platform/rcmp_metrics.py" not in listing
 
 
 def test_rebuild_replaces_the_zip(tmp_path, tree):

@@ -126,12 +126,12 @@ def test_init_refuses_a_robot_home_and_a_master_without_an_external_address(tmp_
     robot.mkdir()
     (robot / "init.cfg").write_text("[main]\nname=robot1\n")
     result = rcmp_n(robot, "vpn", "init", "--remote", REMOTE)
-    assert result.returncode == 1 and "runs on the master" in result.stderr
+    assert result.returncode == 2 and "runs on the master" in result.stderr
     master = tmp_path / "m"
     master.mkdir()
     (master / ".init.cfg").write_text("[main]\next_interface=nosuchif0\n")
     result = rcmp_n(master, "vpn", "init")
-    assert result.returncode == 1 and "nosuchif0" in result.stderr and "--remote" in result.stderr
+    assert result.returncode == 2 and "nosuchif0" in result.stderr and "--remote" in result.stderr
     assert not (master / "vpn").exists() and not (robot / "vpn").exists()
 
 
@@ -202,7 +202,7 @@ def test_commands_refuse_bad_input_with_one_line_and_change_nothing(home, tmp_pa
         (["vpn", "client", "robot2", "--remote", "host:99999"], 2, "not a port number"),
         (["vpn", "client", "robot2", "-o", str(tmp_path / "no" / "such" / "dir" / "f.conf")], 1,
          "cannot write the client file"),
-        (["vpn", "client", "robot2", "-o", str(tmp_path)], 1, "is a folder"),
+        (["vpn", "client", "robot2", "-o", str(tmp_path)], 2, "is a folder"),
         (["vpn", "revoke", "robot9"], 1, "no VPN certificate was issued to 'robot9'"),
         (["vpn", "frobnicate"], 2, "invalid choice"),
     ]

@@ -5,7 +5,8 @@ import os
 
 import pytest
 
-from rcm_platform.rcmp_config import ConfigError, load_config, make_config, platform_address, rdapi_address
+from rcm_platform.rcmp_config import (ConfigError, folder_problem, load_config, make_config, platform_address,
+                                     rdapi_address)
 from tests.support.paths import REPO
 
 SEED_MASTER = "# .init.cfg\n\n[main]\ninbound_open_ports=10100, 10101, 10102, 10103\n"
@@ -158,3 +159,31 @@ def test_bad_configuration_is_one_line_naming_file_and_key(tmp_path, name, text,
 def test_missing_home(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "nothing")
+
+
+@pytest.mark.parametrize("make,expected", [
+    (lambda base: base / "nothing", "the platform folder does not exist"),
+    (lambda base: (base / "f").write_text("x") and base / "f", "the platform folder is a file, not a folder"),
+    (lambda base: (base / "f").write_text("x") and base / "f" / "home",
+     "the platform folder cannot exist: {base}/f is a file, not a folder"),
+    (lambda base: os.symlink(base / "gone", base / "l") or base / "l",
+     "the platform folder is a symbolic link to '{base}/gone', which does not exist"),
+    (lambda base: os.mkfifo(base / "p") or base / "p", "the platform folder is a named pipe, not a folder"),
+])
+def test_each_wrong_kind_of_platform_folder_is_named(tmp_path, make, expected):
+    path = make(tmp_path)
+    expected = expected.format(base=tmp_path)
+    assert folder_problem(str(path)) == expected
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    assert str(info.value) == f"{path}: {expected}"
+
+
+def test_a_device_is_not_a_platform_folder():
+    assert folder_problem("/dev/null") == "the platform folder is a character device, not a folder"
+    assert folder_problem("/dev/null", what="the agent's log folder") == \
+        "the agent's log folder is a character device, not a folder"
+
+
+def test_a_usable_folder_has_no_problem(tmp_path):
+    assert folder_problem(str(tmp_path)) is None and folder_problem(str(tmp_path), write=True) is None

@@ -109,3 +109,44 @@ class WatchdogTests(unittest.TestCase):
         self.peer.heard = self.clock.seconds()       # the reactor read the peer's waiting frames
         self.clock.advance(2.0)
         self.assertEqual(self.gone, [])
+
+
+class MissedBeatTests(unittest.TestCase):
+    """``on_miss``: a check that finds the peer silent for a whole interval, before it is gone."""
+
+    def setUp(self):
+        self.clock = task.Clock()
+        self.peer = Peer(self.clock)
+        self.gone, self.missed = [], []
+        self.dog = Watchdog(self.clock, interval=2.0, misses=3, send_beat=self.peer.beat,
+                            last_heard=lambda: self.peer.heard, on_gone=self.gone.append, name="test peer",
+                            on_miss=lambda: self.missed.append(self.clock.seconds()))
+
+    def test_an_answering_peer_misses_nothing(self):
+        self.dog.start()
+        self.clock.pump([2.0] * 10)
+        self.assertEqual(self.missed, [])
+
+    def test_a_beat_unanswered_by_the_next_check_is_a_miss_and_the_limit_is_not(self):
+        self.dog.start()
+        self.clock.advance(2.0)                 # the beat of 2.0 answered at once
+        self.peer.answering = False
+        self.clock.pump([2.0] * 3)              # 4.0: beat; 6.0: the beat of 4.0 missed; 8.0: silent 6 s, gone
+        self.assertEqual(self.missed, [6.0])
+        self.assertEqual(self.gone, [6.0])
+
+    def test_a_peer_heard_once_between_two_checks_misses_nothing(self):
+        self.dog.start()
+        self.peer.answering = False
+        for _ in range(5):
+            self.clock.advance(1.9)
+            self.peer.heard = self.clock.seconds()   # its own beats, just before each of our checks
+            self.clock.advance(0.1)
+        self.assertEqual((self.missed, self.gone), ([], []))
+
+    def test_a_late_check_is_not_a_miss(self):
+        self.dog.start()
+        self.clock.advance(2.0)
+        self.peer.answering = False
+        self.clock.advance(3.5)                 # this agent was stalled: the check runs 1.5 s late
+        self.assertEqual(self.missed, [])
