@@ -17,12 +17,17 @@ This is the package's bottom layer: it imports no other module of ``rcm_platform
   netifaces, and ``master_address_from`` (a robot's default ``ip_master``: its own address with the last octet 1).
 - the platform's name rule (``NAME_RE``, ``MAX_NAME_LENGTH``, ``is_name``): an instance's configured ``name`` and
   every name the RDAPI takes follow it (``rcmp_command.validate_name`` applies it to user input).
+- where ROS is (``ros_setup_script``): the ROS installation's setup script by the rule ``sub_inst.sh ros-setup``
+  holds for the installer: ``ros_setup`` (a file, or ``none``), else the first ``/opt/ros/*/setup.bash``
+  (``noetic`` first), else none, which means ROS on the system's paths as Debian's packages put it.
+  ``rcmp_service_item.ros_environment`` runs the script; this module only says which one.
 """
 
 from __future__ import annotations
 
 import configparser
 import dataclasses
+import glob
 import ipaddress
 import os
 import re
@@ -73,6 +78,7 @@ class Config:
     ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit)
     ic_max_per_address: Optional[int] = None     # (ext) agent-port connections from one address (None: 8)
     max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
+    ros_setup: Optional[str] = None    # (ext) a setup script's absolute path, or "none"; None: ros_setup_script's rule
 
 
 def make_config(role, home, config_file=None, **values):
@@ -173,6 +179,17 @@ def _parse_path(value):
     return value
 
 
+def _parse_ros_setup(value):
+    value = value.strip()
+    if value == "none":
+        return value
+    try:
+        return _parse_path(value)
+    except ValueError:
+        raise ValueError(f"neither none nor the absolute path of a setup script (like "
+                         f"/opt/ros/noetic/setup.bash): {value!r}") from None
+
+
 def _parse_origins(value):
     origins = []
     for part in value.split(","):
@@ -218,6 +235,7 @@ KEYS = {
     "ic_max_connections": (_int_parser(1, 100000), ("master",)),
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
     "run_as": (_parse_user, AGENT_ROLES),
+    "ros_setup": (_parse_ros_setup, AGENT_ROLES),
 }
 
 
@@ -310,6 +328,28 @@ def load_config(home):
         if address is not None:
             config.ip_master = master_address_from(address)
     return config
+
+
+# -- where ROS is --------------------------------------------------------------------------------------------------
+
+ROS_ROOT = "/opt/ros"
+PREFERRED_DISTRO = "noetic"
+
+
+def ros_setup_script(config, search_root=ROS_ROOT):
+    """(setup script or None, how it was chosen): ``ros_setup`` when set (None for ``none``), else the first
+    ``search_root/*/setup.bash`` (``noetic`` first, then by name), else None: ROS is on the system's paths.
+    The rule of ``sub_inst.sh ros-setup``, which the installer and the workspace build follow."""
+    if config.ros_setup == "none":
+        return None, "ros_setup=none"
+    if config.ros_setup is not None:
+        return config.ros_setup, "ros_setup"
+    found = sorted(glob.glob(os.path.join(glob.escape(search_root), "*", "setup.bash")))
+    preferred = os.path.join(search_root, PREFERRED_DISTRO, "setup.bash")
+    for path in ([preferred] if preferred in found else []) + found:
+        if os.path.isfile(path):
+            return path, f"found in {search_root}"
+    return None, f"no {search_root}/*/setup.bash"
 
 
 # -- derived addresses --------------------------------------------------------------------------------------------
