@@ -10,7 +10,8 @@ and each robot's workspace holds robotics_test's talker, built there by the inst
 - A Noetic master with a Noetic robot and a Debian robot: both pair over the managed VPN; each robot's R-side
   talker, and the two of a launcher the robot's agent read with roslaunch's loader, register with the service
   space's ROS master (on the master, a Noetic rosmaster on Python 3.8) from the robot's VPN address; the agent
-  found the talker's file itself; on the Noetic robot the talker is a Python 3.8 process with ROS_DISTRO=noetic. The robot
+  found the talker's file itself; on the Noetic robot the talker is a Python 3.8 process with ROS_DISTRO=noetic;
+  the master's console shows what the talker says (its topic watcher, a rospy child of the agent, on Noetic). The robot
   zip made on the Noetic machine is the byte-identical zip this machine makes.
 - A Debian master with a Noetic robot, the same way round the other way.
 """
@@ -43,6 +44,14 @@ LOGIC = {"slg_name": "talk",
 LOOKUP_NODE = ("import sys, xmlrpc.client\n"
                "code, message, uri = xmlrpc.client.ServerProxy(sys.argv[1]).lookupNode('/e2e', sys.argv[2])\n"
                "print(uri if code == 1 else 'unknown: ' + message)\n")
+
+# run in the master's host: read the console's topic stream (Server-Sent Events) until a line holds the text
+READ_STREAM = ("import sys, urllib.request\n"
+               "with urllib.request.urlopen(sys.argv[1], timeout=60) as stream:\n"
+               "    for line in stream:\n"
+               "        if sys.argv[2].encode() in line:\n"
+               "            print(line.decode().strip())\n"
+               "            break\n")
 
 
 def debian_host(lan, name):
@@ -192,6 +201,10 @@ def test_noetic_master_pairs_a_noetic_robot_and_a_debian_robot_over_its_vpn(lan,
         assert len(masters) == 2, [process_argv(pid) for pid in master.pids()]
         assert {executable(pid) for pid in masters} == {"python3.8"}
         assert {process_env(pid)["ROS_DISTRO"] for pid in masters} == {"noetic"}
+        # the console's topic watcher (rospy in a child of the master's agent) reads the robot's talker
+        seen = master.run(["python3", "-c", READ_STREAM, f"{base}/console/api/topic?ss_name=robot1&topic=/chatter",
+                           "hello from /talker"], env=ROOT_ENV, timeout=90).stdout
+        assert "hello from /talker" in seen, seen + log_tail(master)
     finally:
         stop_daemons(noetic, debian, master)
 
