@@ -701,7 +701,7 @@ def apply_ros_environment(config, environ, path=None, search_root=ROS_ROOT):
     script could be changed by somebody else than root (``root_only``), or when it fails."""
     setup, how = ros_setup_script(config, search_root)
     if setup is None:
-        log.info("ROS on the system's paths (no setup script: %s)", how)
+        log.debug("ROS on the system's paths (no setup script: %s)", how)   # nothing changes, nothing said
         return None
     key = "key 'ros_setup'" if how == "ros_setup" else f"key 'ros_setup' (not set; {setup} {how})"
     where = f"{_config_file_of(config)}: {key}"
