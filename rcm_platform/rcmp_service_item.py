@@ -538,8 +538,11 @@ def _sourced_environment(script, home, user=None, timeout=30.0):
                             timeout=timeout, check=False)
     if result.returncode != 0:
         raise OSError(f"{script} failed (exit status {result.returncode})")
-    return dict(item.decode("utf-8", "replace").split("=", 1)
-                for item in result.stdout.split(b"\0") if b"=" in item)
+    found = dict(item.decode("utf-8", "replace").split("=", 1)
+                 for item in result.stdout.split(b"\0") if b"=" in item)
+    if "PATH" not in found:   # it ran 'exit 0': the shell that sourced it ended before printing anything
+        raise OSError(f"{script} ended the shell that sourced it (a setup script must not exit)")
+    return found
 
 
 @dataclasses.dataclass(frozen=True)

@@ -51,6 +51,12 @@ def test_setup_script_is_sourced_in_an_empty_environment_without_arguments(ros_p
     assert not (ros_prefix / "arguments").exists()
 
 
+def test_a_setup_script_that_exits_is_an_error_not_an_empty_ros(ros_prefix):
+    (ros_prefix / "setup.bash").write_text("export ROS_DISTRO=x\nexit 0\n")
+    with pytest.raises(OSError, match="ended the shell that sourced it"):
+        rcmp_service_item.ros_environment(str(ros_prefix / "setup.bash"))
+
+
 def run_agent(home):
     env = {"PATH": "/usr/bin:/bin", "HOME": str(home), "LANG": "C.UTF-8", "PYTHONPATH": REPO}
     return subprocess.run([PYTHON, "-m", "rcm_platform", "--home", str(home)], capture_output=True, text=True,
