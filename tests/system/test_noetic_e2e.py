@@ -7,12 +7,14 @@ test hosts with this machine's Debian 12 (Python 3.11, ROS in /usr). On each, th
 platform's VPN (``rcmp_n vpn init`` on that machine's Python), its ``rcmp_n vpn client`` issues each robot's file,
 and each robot's workspace holds robotics_test's talker, built there by the installer on that machine's ROS.
 
-- A Noetic master with a Noetic robot and a Debian robot: both pair over the managed VPN; each robot's R-side
-  talker, and the two of a launcher the robot's agent read with roslaunch's loader, register with the service
-  space's ROS master (on the master, a Noetic rosmaster on Python 3.8) from the robot's VPN address; the agent
-  found the talker's file itself; on the Noetic robot the talker is a Python 3.8 process with ROS_DISTRO=noetic;
-  the master's console shows what the talker says (its topic watcher, a rospy child of the agent, on Noetic). The robot
-  zip made on the Noetic machine is the byte-identical zip this machine makes.
+- A Noetic master (robotics.zip: FIROS, rcm_driver and robotics_msgs built in its workspace on Noetic) with a
+  Noetic robot and a Debian robot: both pair over the managed VPN; each service space's rcm_driver runs on the
+  master's Python 3.8 with those messages; each robot's R-side talker, and the two of a launcher the robot's agent
+  read with roslaunch's loader, register with the service space's ROS master (on the master, a Noetic rosmaster on
+  Python 3.8) from the robot's VPN address; the agent found the talker's file itself; on the Noetic robot the
+  talker is a Python 3.8 process with ROS_DISTRO=noetic; the master's console shows what the talker says (its
+  topic watcher, a rospy child of the agent, on Noetic). The robot zip made on the Noetic machine is the
+  byte-identical zip this machine makes.
 - A Debian master with a Noetic robot, the same way round the other way.
 """
 
@@ -58,15 +60,21 @@ def debian_host(lan, name):
     return lan.add_host(name, private=INSTALL_PATHS, fresh=INSTALL_FRESH)
 
 
-def install_master(host, pkg):
-    """The master zip installed with the platform's VPN, its daemon started; returns the RDAPI's base URL."""
+# on the server side of a master installed from robotics.zip: rcm_driver, with robotics_msgs built on that ROS
+RCM_DRIVER = {"sn_package": "rcm", "sn_type": "rcm_driver.py", "sn_name": "rcm_driver", "sn_params": "",
+              "sn_side": "S"}
+
+
+def install_master(host, pkg, logic=LOGIC, *extra):
+    """The master zip installed with the platform's VPN, its daemon started, ``logic`` provisioned; returns the
+    RDAPI's base URL."""
     out = host.run([pkg / "install.sh", "-n", "--skip-deps", "--start", "no", "--vpn-subnet", VPN_SUBNET,
-                    "--vpn-port", "1194"], env=ROOT_ENV, cwd=pkg, timeout=300).stdout
+                    "--vpn-port", "1194", *extra], env=ROOT_ENV, cwd=pkg, timeout=300).stdout
     assert "Created the platform's VPN in /opt/rcm-platform/vpn" in out, out
     assert service(host, "start").returncode == 0, log_tail(host)
     base = f"http://{host.address}"
     wait_until(lambda: curl(host, base + "/")[0] == 200, timeout=90, message=f"the RDAPI\n{log_tail(host)}")
-    status, reply = curl(host, base + "/service_logic/provisioning", LOGIC)
+    status, reply = curl(host, base + "/service_logic/provisioning", logic)
     assert (status, reply["result"]) == (200, "OK"), reply
     return base
 
@@ -170,7 +178,7 @@ def test_noetic_master_pairs_a_noetic_robot_and_a_debian_robot_over_its_vpn(lan,
     master = add_noetic_host(lan, "master")
     noetic = add_noetic_host(lan, "noetic")
     debian = debian_host(lan, "debian")
-    master_pkg = build_zip(tmp_path / "m", "master")
+    master_pkg = build_zip(tmp_path / "m")   # robotics.zip: FIROS, rcm_driver and robotics_msgs too
     # the robot zip made on the Noetic machine (Python 3.8) is the one this machine makes, byte for byte
     build_zip(tmp_path / "r", "robot")
     made_here = tmp_path / "r" / "dist" / ZIP_NAMES["robot"]
@@ -180,7 +188,8 @@ def test_noetic_master_pairs_a_noetic_robot_and_a_debian_robot_over_its_vpn(lan,
     assert made_on_noetic.read_bytes() == made_here.read_bytes()
     robot_pkg = unpack_zip(made_on_noetic, tmp_path / "noetic-unpacked")
     try:
-        base = install_master(master, master_pkg)
+        logic = dict(LOGIC, sn_list=LOGIC["sn_list"] + [RCM_DRIVER])
+        base = install_master(master, master_pkg, logic, "--fiware", "yes")
         log = master.run(["cat", "/opt/rcm-platform/log/rcmp.log"]).stdout
         assert f"ROS from {SETUP} (found in /opt/ros): ROS_DISTRO=noetic" in log, log
 
@@ -201,6 +210,16 @@ def test_noetic_master_pairs_a_noetic_robot_and_a_debian_robot_over_its_vpn(lan,
         assert len(masters) == 2, [process_argv(pid) for pid in master.pids()]
         assert {executable(pid) for pid in masters} == {"python3.8"}
         assert {process_env(pid)["ROS_DISTRO"] for pid in masters} == {"noetic"}
+        # rcm_driver runs on Python 3.8 with robotics_msgs as the master's workspace built them on Noetic, and
+        # was told that each robot connected (the agent reached its port once it ran)
+        drivers = [pid for pid in master.pids() if any(w.endswith("/rcm_driver.py")
+                                                       for w in process_argv(pid) or [])]
+        assert len(drivers) == 2 and {executable(pid) for pid in drivers} == {"python3.8"}, drivers
+        for name in ("robot1", "robot2"):
+            assert node_uri(master, base, name, "/rcm_driver").startswith(f"http://{vpn_address(master)}:")
+        log = master.run(["cat", "/opt/rcm-platform/log/rcmp.log"]).stdout
+        for name in ("robot1", "robot2"):
+            assert f"service space {name}: told rcm_driver (port " in log, log
         # the console's topic watcher (rospy in a child of the master's agent) reads the robot's talker
         seen = master.run(["python3", "-c", READ_STREAM, f"{base}/console/api/topic?ss_name=robot1&topic=/chatter",
                            "hello from /talker"], env=ROOT_ENV, timeout=90).stdout
