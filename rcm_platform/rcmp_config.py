@@ -19,13 +19,18 @@ This is the package's bottom layer: it imports no other module of ``rcm_platform
   every name the RDAPI takes follow it (``rcmp_command.validate_name`` applies it to user input);
 - the platform folder's checks (``folder_problem``: missing, a file or another kind, unreachable, not readable, not
   writable where the command writes) and the exit statuses every ``rcmp_n`` command uses (``EXIT_OK``,
-  ``EXIT_FAILED``, ``EXIT_USAGE``, ``EXIT_MISSING``; ``EXIT_STATUSES`` is the text ``--help`` shows).
+  ``EXIT_FAILED``, ``EXIT_USAGE``, ``EXIT_MISSING``; ``EXIT_STATUSES`` is the text ``--help`` shows);
+- where ROS is (``ros_setup_script``): the ROS installation's setup script by the rule ``sub_inst.sh ros-setup``
+  holds for the installer: ``ros_setup`` (a file, or ``none``), else the first ``/opt/ros/*/setup.bash``
+  (``noetic`` first), else none, which means ROS on the system's paths as Debian's packages put it.
+  ``rcmp_service_item.ros_environment`` runs the script; this module only says which one.
 """
 
 from __future__ import annotations
 
 import configparser
 import dataclasses
+import glob
 import ipaddress
 import os
 import pwd
@@ -174,6 +179,7 @@ class Config:
     servers: Optional[dict] = None     # (ext) master: server VM names allowed (name -> its only address, or None);
                                        # None: no list (any name that is not a robot's; with a managed VPN, server
                                        # certificates); {}: no server VM at all
+    ros_setup: Optional[str] = None    # (ext) a setup script's absolute path, or "none"; None: ros_setup_script's rule
 
 
 def make_config(role, home, config_file=None, **values):
@@ -274,6 +280,17 @@ def _parse_path(value):
     return value
 
 
+def _parse_ros_setup(value):
+    value = value.strip()
+    if value == "none":
+        return value
+    try:
+        return _parse_path(value)
+    except ValueError:
+        raise ValueError(f"neither none nor the absolute path of a setup script (like "
+                         f"/opt/ros/noetic/setup.bash): {value!r}") from None
+
+
 def _parse_origins(value):
     origins = []
     for part in value.split(","):
@@ -336,6 +353,7 @@ KEYS = {
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),
     "run_as": (_parse_user, AGENT_ROLES),
     "servers": (_parse_servers, ("master",)),
+    "ros_setup": (_parse_ros_setup, AGENT_ROLES),
 }
 
 
@@ -429,6 +447,28 @@ def load_config(home):
         if address is not None:
             config.ip_master = master_address_from(address)
     return config
+
+
+# -- where ROS is --------------------------------------------------------------------------------------------------
+
+ROS_ROOT = "/opt/ros"
+PREFERRED_DISTRO = "noetic"
+
+
+def ros_setup_script(config, search_root=ROS_ROOT):
+    """(setup script or None, how it was chosen): ``ros_setup`` when set (None for ``none``), else the first
+    ``search_root/*/setup.bash`` (``noetic`` first, then by name), else None: ROS is on the system's paths.
+    The rule of ``sub_inst.sh ros-setup``, which the installer and the workspace build follow."""
+    if config.ros_setup == "none":
+        return None, "ros_setup=none"
+    if config.ros_setup is not None:
+        return config.ros_setup, "ros_setup"
+    found = sorted(glob.glob(os.path.join(glob.escape(search_root), "*", "setup.bash")))
+    preferred = os.path.join(search_root, PREFERRED_DISTRO, "setup.bash")
+    for path in ([preferred] if preferred in found else []) + found:
+        if os.path.isfile(path):
+            return path, f"found in {search_root}"
+    return None, f"no {search_root}/*/setup.bash"
 
 
 # -- derived addresses --------------------------------------------------------------------------------------------

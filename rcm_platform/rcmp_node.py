@@ -12,8 +12,9 @@ Owns:
 - logging: ``HOME/log/rcmp.log`` rotating at ``log_max_bytes`` with 5 backups, plus stderr in the foreground;
   Twisted's own log goes to the same place;
 - the agent's own files as root (issue 12): umask 027 (``UMASK``), older world-readable logs and data tightened
-  (``tighten_files``); at start the catkin workspace named by ``RCMP_WS`` goes into the agent's environment
-  (``rcmp_service_item.apply_workspace``);
+  (``tighten_files``); at start the ROS installation's environment (``ros_setup``,
+  ``rcmp_service_item.apply_ros_environment``) and on top of it the catkin workspace named by ``RCMP_WS`` go
+  into the agent's environment (``rcmp_service_item.apply_workspace``);
 - the agent of each role as one Twisted ``MultiService`` (master: the MasterAgent, the console, the metrics
   (``rcmp_metrics``, served at ``/metrics``), then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
@@ -374,7 +375,12 @@ def _main(argv):
     except OSError as exc:
         return _fail(f"{os.path.join(config.home, 'log')}: cannot write the log: {exc.strerror or exc}", EXIT_FAILED)
     tighten_files(config.home)
-    from .rcmp_service_item import apply_workspace
+    from .rcmp_service_item import RosSetupError, apply_ros_environment, apply_workspace
+    try:   # ROS first (the workspace chains onto it), before anything imports a ROS module
+        apply_ros_environment(config, os.environ)
+    except RosSetupError as exc:
+        _log_to_file_only(f"cannot start: {exc}")
+        return _fail(str(exc), EXIT_USAGE)
     apply_workspace(os.environ)
     from . import rcmp_deps
     try:

@@ -18,17 +18,22 @@ A newcomer's question "where does a service item get its command line, environme
   one exec instead of rosrun's bash, catkin_find and rospack, 0.2 CPU-seconds per node). What a launcher starts
   is read with roslaunch's own loader (``launcher_nodes``; ``launcher_nodes_as`` in a child running as the items'
   user), and a node's graph name from its params (``graph_name``).
-- **its environment**: ``child_env``: the agent's environment (with the catkin workspace's search paths, which
-  ``apply_workspace`` put there at start), ``/usr/bin`` first on PATH, the space's ``ROS_MASTER_URI``,
-  ``ROS_IP``/``ROS_HOSTNAME`` and ``ROS_LOG_DIR``, and, for another user, that user's HOME, USER, ROS_HOME and the
-  workspace's code paths when the workspace is theirs (``RunAs.environment``, ``WorkspaceOverlay.for_child``).
-  ``workspace_overlay`` runs the workspace's ``devel/setup.bash`` as its owner, never as root, to learn them.
+- **its environment**: ``child_env``: the agent's environment (the ROS installation's and, on top of it, the
+  catkin workspace's search paths, which ``apply_ros_environment`` and ``apply_workspace`` put there at start),
+  ``/usr/bin`` first on PATH, the space's ``ROS_MASTER_URI``, ``ROS_IP``/``ROS_HOSTNAME`` and ``ROS_LOG_DIR``,
+  and, for another user, that user's HOME, USER, ROS_HOME and the workspace's code paths when the workspace is
+  theirs (``RunAs.environment``, ``WorkspaceOverlay.for_child``). ``workspace_overlay`` runs the workspace's
+  ``devel/setup.bash`` as its owner, never as root, to learn them; ``ros_environment`` runs the ROS
+  installation's setup script (``ros_setup``, CONTRACTS §1: ``/opt/ros/noetic/setup.bash`` on Ubuntu with ROS's
+  packages, none with Debian's) as the agent's own user, a root agent only when nobody else can change it, and
+  ``apply_ros_environment`` also puts ROS's Python packages on the agent's ``sys.path`` for its own lookups.
 - **its user**: ``resolve_run_as(config)``: ``run_as`` (CONTRACTS §10), else the owner of the ROS workspace the
   installer made, as a ``RunAs`` (its ``setpriv_args`` are what the process table's ``setpriv`` switches to),
   or None for the agent's own user. ``RunAsError`` (one line) when that cannot be.
 """
 
 import dataclasses
+import importlib
 import json
 import logging
 import os
@@ -37,10 +42,12 @@ import shlex
 import signal
 import stat
 import subprocess
+import sys
 import tempfile
 import time
 
 from .rcmp_command import BadRequest, item_list_field, logic_entries, split_params, validate_service_item
+from .rcmp_config import ROS_ROOT, ros_setup_script
 from .rcmp_process import FAILED, RUNNING, SETPRIV, STARTING, nice_prefix
 
 log = logging.getLogger(__name__)
@@ -537,6 +544,41 @@ def root_only(path):
         path = parent
 
 
+def _system_path_first(env_path, first=(), last=()):
+    """A PATH with the system's folders first (the PATH trap: another ``python3`` before ``/usr/bin`` breaks
+    ROS's scripts), then ``first``, then the other folders of ``env_path``, then ``last``; each folder once."""
+    system = SYSTEM_PATH.split(":")
+    folders = []
+    for p in system + list(first) + env_path.split(":") + list(last):
+        if p and p not in folders:
+            folders.append(p)
+    return ":".join(folders)
+
+
+# what sources a setup script: no profile, no rc file, no arguments for it (a sourced catkin setup.bash hands its
+# caller's to _setup_util.py), its path an argument of bash (never part of the program), its output discarded
+SOURCE_PROGRAM = 'script=$1; set --; . "$script" >/dev/null 2>&1 || exit 3; exec env -0'
+
+
+def _sourced_environment(script, home, user=None, timeout=30.0):
+    """The environment ``script`` leaves when bash sources it in an empty one (PATH=SYSTEM_PATH, HOME, LC_ALL=C),
+    as ``user`` ((uid, gid, setpriv group option)) when given, else as ourselves. OSError when it fails."""
+    argv = ["/bin/bash", "--noprofile", "--norc", "-c", SOURCE_PROGRAM, "rcmp_n-source", script]
+    if user is not None:
+        uid, gid, groups = user
+        argv = [SETPRIV, f"--reuid={uid}", f"--regid={gid}", groups, "--", *argv]
+    result = subprocess.run(argv, env={"PATH": SYSTEM_PATH, "HOME": home, "LC_ALL": "C"}, cwd="/",
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            timeout=timeout, check=False)
+    if result.returncode != 0:
+        raise OSError(f"{script} failed (exit status {result.returncode})")
+    found = dict(item.decode("utf-8", "replace").split("=", 1)
+                 for item in result.stdout.split(b"\0") if b"=" in item)
+    if "PATH" not in found:   # it ran 'exit 0': the shell that sourced it ended before printing anything
+        raise OSError(f"{script} ended the shell that sourced it (a setup script must not exit)")
+    return found
+
+
 @dataclasses.dataclass(frozen=True)
 class WorkspaceOverlay:
     """A catkin workspace's environment, obtained by running its ``devel/setup.bash`` as the workspace's owner."""
@@ -555,9 +597,7 @@ class WorkspaceOverlay:
         if as_owner or self.trusted:
             for key, value in self.code.items():
                 if key == "PATH":
-                    extra = [p for p in value.split(":") if p and p not in SYSTEM_PATH.split(":")]
-                    rest = [p for p in env.get("PATH", "").split(":") if p and p not in SYSTEM_PATH.split(":")]
-                    env["PATH"] = ":".join([SYSTEM_PATH] + rest + [p for p in extra if p not in rest])
+                    env["PATH"] = _system_path_first(env.get("PATH", ""), last=value.split(":"))
                 else:
                     env[key] = value
         return env
@@ -581,20 +621,11 @@ def workspace_overlay(workspace, timeout=30.0):
     st = os.stat(workspace)
     try:
         user = pwd.getpwuid(st.st_uid)
-        home, groups = user.pw_dir, ["--init-groups"]
+        home, groups = user.pw_dir, "--init-groups"
     except KeyError:
-        home, groups = "/", ["--clear-groups"]
-    argv = ["/bin/bash", "--noprofile", "--norc", "-c", '. "$1" >/dev/null 2>&1 || exit 3; exec env -0',
-            "rcmp_n-workspace", setup]
-    if os.geteuid() == 0 and st.st_uid != 0:
-        argv = ["/usr/bin/setpriv", f"--reuid={st.st_uid}", f"--regid={st.st_gid}", *groups, "--", *argv]
-    result = subprocess.run(argv, env={"PATH": SYSTEM_PATH, "HOME": home, "LC_ALL": "C"}, cwd="/",
-                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
-                            timeout=timeout, check=False)
-    if result.returncode != 0:
-        raise OSError(f"{setup} failed (exit status {result.returncode})")
-    found = dict(item.decode("utf-8", "replace").split("=", 1)
-                 for item in result.stdout.split(b"\0") if b"=" in item)
+        home, groups = "/", "--clear-groups"
+    as_owner = (st.st_uid, st.st_gid, groups) if os.geteuid() == 0 and st.st_uid != 0 else None
+    found = _sourced_environment(setup, home, as_owner, timeout)
     overlay = WorkspaceOverlay(
         workspace, st.st_uid, st.st_gid, root_only(workspace) and st.st_uid == 0,
         {k: found[k] for k in OVERLAY_SEARCH_KEYS if found.get(k)},
@@ -624,6 +655,114 @@ def apply_workspace(environ):
     return overlay
 
 
+# -- the ROS installation under it ---------------------------------------------------------------------------------
+
+class RosSetupError(Exception):
+    """The ROS installation's setup script cannot be used; ``str()`` is one line naming the configuration file,
+    the key and the problem."""
+
+
+# what the agent keeps of a ROS setup script's environment: the additions to PATH, these path lists and ROS's own
+# variables, but never a ROS master or an address to advertise (each service space sets those for its children)
+ROS_PATH_KEYS = ("PYTHONPATH", "LD_LIBRARY_PATH", "PKG_CONFIG_PATH", "CMAKE_PREFIX_PATH", "ROS_PACKAGE_PATH",
+                 "ROSLISP_PACKAGE_DIRECTORIES")
+ROS_DROPPED_KEYS = ("ROS_MASTER_URI", "ROS_IP", "ROS_HOSTNAME")
+
+
+def ros_variables(found):
+    """What the agent keeps of ``found``, the environment a ROS setup script left (sourced with
+    PATH=SYSTEM_PATH): ``PATH`` as the folders it added, the lists of ``ROS_PATH_KEYS`` and every other
+    ``ROS_*`` variable but ``ROS_DROPPED_KEYS``; empty values left out."""
+    kept = {}
+    added = [p for p in found.get("PATH", "").split(":") if p and p not in SYSTEM_PATH.split(":")]
+    if added:
+        kept["PATH"] = ":".join(added)
+    for key, value in found.items():
+        if value and (key in ROS_PATH_KEYS or (key.startswith("ROS_") and key not in ROS_DROPPED_KEYS)):
+            kept[key] = value
+    return kept
+
+
+@dataclasses.dataclass(frozen=True)
+class RosEnvironment:
+    """The environment of a ROS installation's setup script (``ros_environment``), as ``ros_variables`` keeps
+    it; ``for_child`` puts it under an environment, the workspace overlay then goes on top."""
+    setup: str
+    variables: dict
+
+    def for_child(self, env):
+        """``env`` as sourcing the script in it would leave it: each path list with this ROS's entries first and
+        the ones already there after them; PATH with the system's folders first, then this ROS's; the other
+        variables set."""
+        env = dict(env)
+        for key, value in self.variables.items():
+            if key == "PATH":
+                env["PATH"] = _system_path_first(env.get("PATH", ""), first=value.split(":"))
+            elif key in ROS_PATH_KEYS:
+                ours = [p for p in value.split(":") if p]
+                env[key] = ":".join(ours + [p for p in env.get(key, "").split(":") if p and p not in ours])
+            else:
+                env[key] = value
+        return env
+
+    @property
+    def python_path(self):
+        """The folders of its PYTHONPATH (ROS's Python packages), in order."""
+        return [p for p in self.variables.get("PYTHONPATH", "").split(":") if p]
+
+
+_ros_environments = {}
+
+
+def ros_environment(setup, timeout=30.0):
+    """The ``RosEnvironment`` of the setup script ``setup``, computed once per path: sourced by bash in an empty
+    environment as the agent's own user (``_sourced_environment``). OSError when it fails."""
+    if setup not in _ros_environments:
+        home = os.environ.get("HOME") or pwd.getpwuid(os.geteuid()).pw_dir
+        _ros_environments[setup] = RosEnvironment(setup, ros_variables(_sourced_environment(setup, home,
+                                                                                            timeout=timeout)))
+    return _ros_environments[setup]
+
+
+def _config_file_of(config):
+    """The configuration file a message about ``config`` names (the one the role reads, also when absent)."""
+    return config.config_file or os.path.join(config.home, "init.cfg" if config.role != "master" else ".init.cfg")
+
+
+def apply_ros_environment(config, environ, path=None, search_root=ROS_ROOT):
+    """Put the ROS installation (``rcmp_config.ros_setup_script``) under ``environ`` (``RosEnvironment.for_child``)
+    and its Python packages into ``path`` (``sys.path``, where PYTHONPATH would have put them), so that the
+    agent's own ROS lookups and every child use that ROS. Called once at start, before the workspace overlay and
+    before any ROS module is imported. Returns the RosEnvironment, or None when ROS is on the system's paths
+    (nothing changes). RosSetupError (one line) when the script is not a readable file, when a root agent's
+    script could be changed by somebody else than root (``root_only``), or when it fails."""
+    setup, how = ros_setup_script(config, search_root)
+    if setup is None:
+        log.debug("ROS on the system's paths (no setup script: %s)", how)   # nothing changes, nothing said
+        return None
+    key = "key 'ros_setup'" if how == "ros_setup" else f"key 'ros_setup' (not set; {setup} {how})"
+    where = f"{_config_file_of(config)}: {key}"
+    if not os.path.isfile(setup) or not os.access(setup, os.R_OK):
+        raise RosSetupError(f"{where}: {setup} is not a readable file")
+    if os.geteuid() == 0 and not root_only(setup):
+        raise RosSetupError(f"{where}: {setup} or a folder above it is not root's alone (another owner, or "
+                            f"writable by group or others): the root agent runs no setup script that somebody "
+                            f"else can change")
+    try:
+        ros = ros_environment(setup)
+    except (OSError, subprocess.SubprocessError) as exc:
+        raise RosSetupError(f"{where}: {exc}") from None
+    environ.update(ros.for_child(environ))
+    path = sys.path if path is None else path
+    missing = [p for p in ros.python_path if p not in path]
+    path[min(1, len(path)):min(1, len(path))] = missing
+    importlib.invalidate_caches()
+    log.info("ROS from %s (%s): ROS_DISTRO=%s, %s", setup, how, ros.variables.get("ROS_DISTRO", "not set"),
+             ", ".join(f"{k}={ros.variables[k]}" for k in ("PATH", "PYTHONPATH") if k in ros.variables)
+             or "no PATH or PYTHONPATH of its own")
+    return ros
+
+
 # -- the user service items run as ---------------------------------------------------------------------------------
 
 def default_workspace(environ=None):
@@ -640,7 +779,7 @@ def resolve_run_as(config, environ=None):
     items run as the agent's own user, and a root agent says so in the log. RunAsError (one line) for a user
     that does not exist, or a non-root agent asked to run items as another user.
     """
-    where = config.config_file or os.path.join(config.home, "init.cfg" if config.role != "master" else ".init.cfg")
+    where = _config_file_of(config)
     euid = os.geteuid()
     name = config.run_as
     if name is None:

@@ -197,18 +197,23 @@ def build_zip(tmp_path, package=None):
     out = tmp_path / "dist"
     result = run([PYTHON, os.path.join(ROOT, "create_robotics_pkg")] + ([package] if package else [])
                  + ["-o", out], timeout=120)
-    name = {None: "robotics.zip", "master": "rcm_platform_master.zip", "robot": "rcm_platform_robot.zip"}[package]
-    path = out / name
+    path = out / ZIP_NAMES[package]
     assert path.exists(), result.stdout
-    unpacked = tmp_path / "unpacked"
+    return unpack_zip(path, tmp_path / "unpacked")
+
+
+ZIP_NAMES = {None: "robotics.zip", "master": "rcm_platform_master.zip", "robot": "rcm_platform_robot.zip"}
+
+
+def unpack_zip(path, unpacked):
+    """Unpack an agent zip into the folder ``unpacked`` as unzip would; returns its package folder."""
     with zipfile.ZipFile(path) as zf:
         zf.extractall(unpacked)
         for info in zf.infolist():  # zipfile does not restore permissions: as unzip would
             mode = (info.external_attr >> 16) & 0o777
             if mode:
                 os.chmod(unpacked / info.filename, mode)
-    root = "rcm_platform_robot" if package == "robot" else "rcm_platform_master"
-    return unpacked / root
+    return unpacked / ("rcm_platform_robot" if path.name == ZIP_NAMES["robot"] else "rcm_platform_master")
 
 
 def user_env(home):

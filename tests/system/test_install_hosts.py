@@ -14,15 +14,15 @@ is stopped and every namespace removed at the end, even when a test fails.
   workspace's owner, with the workspace's code paths (issue 12 ``run_as``, end to end from rcmpd).
 """
 
-import json
 import os
 import resource
 import shutil
-import stat
 
 import pytest
 
 from tests.support.hosts import INSTALL_FRESH, INSTALL_PATHS
+from tests.support.installed import (ROOT_ENV, USER_PATH, agent_pid, curl, log_tail, process_env, service,
+                                     stop_daemons)
 from tests.support.paths import REPO
 from tests.support.polling import wait_until
 from tests.system.test_install import build_zip
@@ -32,50 +32,9 @@ pytestmark = [pytest.mark.netns,
               pytest.mark.skipif(not os.path.exists("/usr/sbin/update-rc.d"), reason="needs update-rc.d")]
 
 HOST_PATHS = {"private": INSTALL_PATHS + ("/home",), "fresh": INSTALL_FRESH}
-USER_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
-ROOT_ENV = {"PATH": USER_PATH, "HOME": "/root", "LANG": "C", "USER": "root", "LOGNAME": "root"}
 VPN_SUBNET = "198.51.100.0/24"
 PY = "/usr/bin/python3"
 ROOT = REPO
-
-
-def curl(host, url, body=None, timeout=5):
-    """(status, parsed JSON or text) of an HTTP request made from inside ``host``."""
-    argv = ["curl", "-s", "-S", "--max-time", timeout, "-w", "\n%{http_code}"]
-    if body is not None:
-        argv += ["-H", "Content-Type: application/json", "--data-binary", json.dumps(body)]
-    result = host.run(argv + [url], check=False, timeout=timeout + 10)
-    if result.returncode != 0:
-        return None, result.stdout
-    text, _, code = result.stdout.rpartition("\n")
-    try:
-        return int(code), json.loads(text)
-    except ValueError:
-        return int(code), text
-
-
-def service(host, action, check=False):
-    return host.run(["service", "rcmpd", action], env={"PATH": USER_PATH, "LANG": "C"}, check=check, timeout=120)
-
-
-def agent_pid(host):
-    result = host.run(["cat", "/run/rcmpd.pid"], check=False)
-    return int(result.stdout) if result.returncode == 0 and result.stdout.strip().isdigit() else None
-
-
-def stop_daemons(*hosts):
-    """Stop the daemon of every host (finally blocks): the LAN's teardown would otherwise report it as left."""
-    for host in hosts:
-        if host.run(["test", "-x", "/etc/init.d/rcmpd"], check=False).returncode == 0:
-            service(host, "stop")
-
-
-def log_tail(host, lines=40):
-    text = ""
-    for name in ("rcmpd.out", "rcmp.log"):
-        result = host.run(["tail", "-n", lines, f"/opt/rcm-platform/log/{name}"], check=False)
-        text += f"--- {host.name} {name}\n{result.stdout}"
-    return text
 
 
 def file_mode(host, path):
@@ -90,11 +49,6 @@ def proc_field(pid, name, field):
             if line.startswith(field):
                 return line[len(field):].split()
     return None
-
-
-def process_env(pid):
-    with open(f"/proc/{pid}/environ", "rb") as f:
-        return dict(item.decode().split("=", 1) for item in f.read().split(b"\0") if b"=" in item)
 
 
 # ---------------------------------------------------------------------------------------------------------------

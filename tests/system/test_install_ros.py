@@ -63,6 +63,9 @@ def test_noetic_robot_uses_opt_ros_names_ross_packages_and_builds_its_workspace_
     site = robot.run(["python3", "-c", "import site; print(site.getsitepackages()[0])"], env=PLAIN_ENV).stdout.strip()
     assert "python3.8" in site and robot.run(["test", "-f", f"{site}/rcm_platform/rcmp_node.py"], check=False).returncode == 0
     assert robot.run(["head", "-1", "/usr/local/bin/rcmp_n"]).stdout.strip() == "#!/usr/bin/python3"
+    helped = robot.run(["rcmp_n", "--help"], env=PLAIN_ENV).stdout   # the installed agent runs on Python 3.8
+    assert helped.startswith("usage: rcmp_n ") and "--home DIR" in helped, helped
+    assert robot.run(["python3", "-c", "import sys; print(sys.version_info[:2])"], env=PLAIN_ENV).stdout == "(3, 8)\n"
 
 
 def _forget_packages(host, names):

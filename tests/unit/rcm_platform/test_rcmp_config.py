@@ -6,7 +6,7 @@ import os
 import pytest
 
 from rcm_platform.rcmp_config import (ConfigError, folder_problem, load_config, make_config, platform_address,
-                                     rdapi_address)
+                                      rdapi_address, ros_setup_script)
 from tests.support.paths import REPO
 
 SEED_MASTER = "# .init.cfg\n\n[main]\ninbound_open_ports=10100, 10101, 10102, 10103\n"
@@ -140,6 +140,10 @@ BAD = [
     (".init.cfg", "[main]\nservers=vm1, vm1@10.0.0.2\n", "key 'servers': server vm1 is listed twice"),
     (".init.cfg", "[main]\nservers=vm1@10.0.0.300\n", "key 'servers': not an IPv4 address"),
     ("init.cfg", "[main]\nname=r1\nrobot=no\nservers=vm1\n", "key 'servers': not used by a server VM"),
+    ("init.cfg", "[main]\nname=r1\nros_setup=opt/ros/noetic/setup.bash\n",
+     "key 'ros_setup': neither none nor the absolute path of a setup script"),
+    (".init.cfg", "[main]\nros_setup=\n", "key 'ros_setup': neither none nor the absolute path"),
+    (".init.cfg", "[main]\nros_setup=None\n", "key 'ros_setup': neither none nor the absolute path"),
 ]
 
 
@@ -187,3 +191,35 @@ def test_a_device_is_not_a_platform_folder():
 
 def test_a_usable_folder_has_no_problem(tmp_path):
     assert folder_problem(str(tmp_path)) is None and folder_problem(str(tmp_path), write=True) is None
+
+
+# -- where ROS is: the rule of sub_inst.sh ros-setup ----------------------------------------------------------------
+
+def setup_scripts(root, *distros):
+    for distro in distros:
+        (root / distro).mkdir(parents=True)
+        (root / distro / "setup.bash").write_text("# ROS's setup script\n")
+
+
+def test_ros_setup_is_the_given_script_else_the_first_under_opt_ros_noetic_first_else_none(tmp_path):
+    ros = tmp_path / "ros"
+    write(tmp_path, ".init.cfg", "[main]\n")
+    config = load_config(tmp_path)
+    assert config.ros_setup is None
+    assert ros_setup_script(config, str(ros)) == (None, f"no {ros}/*/setup.bash")   # Debian: ROS in /usr
+    setup_scripts(ros, "melodic", "kinetic")
+    (ros / "aaa").mkdir()                                      # a folder without a setup script does not count
+    assert ros_setup_script(config, str(ros)) == (str(ros / "kinetic" / "setup.bash"), f"found in {ros}")
+    setup_scripts(ros, "noetic")
+    assert ros_setup_script(config, str(ros)) == (str(ros / "noetic" / "setup.bash"), f"found in {ros}")
+
+    # given: none keeps the system's ROS beside an /opt/ros; a file is taken as it is (the agent checks it)
+    write(tmp_path, ".init.cfg", "[main]\nros_setup=none\n")
+    assert ros_setup_script(load_config(tmp_path), str(ros)) == (None, "ros_setup=none")
+    write(tmp_path, ".init.cfg", "[main]\nros_setup= /home/me/ros_catkin_ws/install_isolated/setup.bash\n")
+    config = load_config(tmp_path)
+    assert ros_setup_script(config, str(ros)) == ("/home/me/ros_catkin_ws/install_isolated/setup.bash", "ros_setup")
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    write(robot, "init.cfg", "[main]\nname=r1\nrobot=no\nros_setup=/opt/ros/noetic/setup.bash\n")
+    assert load_config(robot).ros_setup == "/opt/ros/noetic/setup.bash"   # every role takes it

@@ -126,3 +126,132 @@ def test_default_is_the_workspace_owner_and_their_children_get_its_code_paths(tm
     assert owner["PYTHONPATH"] == "/ws/devel/lib/python3/dist-packages" and owner["HOME"] != "/root"
     other = RunAs.for_user(NOBODY).environment({"PATH": "/usr/bin:/bin"})
     assert "PYTHONPATH" not in other and other["USER"] == "nobody"
+
+
+# -- the ROS installation's environment (ros_setup) ---------------------------------------------------------------
+
+NOETIC = "/opt/ros/noetic"
+# what sourcing /opt/ros/noetic/setup.bash leaves in an environment holding only PATH, HOME and LC_ALL
+NOETIC_SOURCED = {
+    "PATH": f"{NOETIC}/bin:/usr/bin:/bin:/usr/sbin:/sbin", "HOME": "/root", "LC_ALL": "C", "PWD": "/", "SHLVL": "1",
+    "_": "/usr/bin/env", "PYTHONPATH": f"{NOETIC}/lib/python3/dist-packages", "LD_LIBRARY_PATH": f"{NOETIC}/lib",
+    "PKG_CONFIG_PATH": f"{NOETIC}/lib/pkgconfig", "CMAKE_PREFIX_PATH": NOETIC, "ROSLISP_PACKAGE_DIRECTORIES": "",
+    "ROS_PACKAGE_PATH": f"{NOETIC}/share", "ROS_DISTRO": "noetic", "ROS_VERSION": "1", "ROS_PYTHON_VERSION": "3",
+    "ROS_ETC_DIR": f"{NOETIC}/etc/ros", "ROS_ROOT": f"{NOETIC}/share/ros",
+    "ROS_MASTER_URI": "http://localhost:11311", "ROS_IP": "127.0.0.1", "ROS_HOSTNAME": "localhost",
+    "CATKIN_SHELL": "bash", "UNRELATED": "1",
+}
+NOETIC_KEPT = {
+    "PATH": f"{NOETIC}/bin", "PYTHONPATH": f"{NOETIC}/lib/python3/dist-packages", "LD_LIBRARY_PATH": f"{NOETIC}/lib",
+    "PKG_CONFIG_PATH": f"{NOETIC}/lib/pkgconfig", "CMAKE_PREFIX_PATH": NOETIC, "ROS_PACKAGE_PATH": f"{NOETIC}/share",
+    "ROS_DISTRO": "noetic", "ROS_VERSION": "1", "ROS_PYTHON_VERSION": "3", "ROS_ETC_DIR": f"{NOETIC}/etc/ros",
+    "ROS_ROOT": f"{NOETIC}/share/ros",
+}
+
+
+def test_ros_variables_keep_paths_and_ros_variables_but_no_master_and_no_address():
+    # ROS's own hook sets ROS_MASTER_URI to localhost: each service space says where its master is
+    assert rcmp_service_item.ros_variables(NOETIC_SOURCED) == NOETIC_KEPT
+    assert rcmp_service_item.ros_variables({"PATH": "/usr/bin:/bin:/usr/sbin:/sbin", "HOME": "/root"}) == {}
+
+
+def test_ros_goes_under_the_agents_environment_and_the_workspace_on_top():
+    ros = rcmp_service_item.RosEnvironment(f"{NOETIC}/setup.bash", NOETIC_KEPT)
+    env = ros.for_child({"PATH": "/root/.pyenv/shims:/usr/bin:/usr/local/bin", "PYTHONPATH": "/src/repo",
+                         "ROS_DISTRO": "Debian", "HOME": "/root"})
+    # the system's folders first (the PATH trap), then ROS's, then the rest; ROS's Python before the caller's
+    assert env["PATH"] == f"/usr/bin:/bin:/usr/sbin:/sbin:{NOETIC}/bin:/root/.pyenv/shims:/usr/local/bin"
+    assert env["PYTHONPATH"] == f"{NOETIC}/lib/python3/dist-packages:/src/repo"
+    assert (env["ROS_DISTRO"], env["ROS_PACKAGE_PATH"], env["HOME"]) == ("noetic", f"{NOETIC}/share", "/root")
+    assert "ROS_MASTER_URI" not in env
+    assert ros.for_child(env) == env   # applied twice: nothing listed twice
+    # a workspace built on that ROS chains onto it: its search paths replace ROS's, ROS's bin stays on PATH
+    overlay = rcmp_service_item.WorkspaceOverlay(
+        "/root/rcmp_ws", 0, 0, True, {"ROS_PACKAGE_PATH": f"/root/rcmp_ws/src:{NOETIC}/share"},
+        {"PATH": f"{NOETIC}/bin:/usr/bin:/bin", "PYTHONPATH": f"/root/rcmp_ws/devel/lib/python3/dist-packages:"
+                                                            f"{NOETIC}/lib/python3/dist-packages"})
+    top = overlay.for_child(env)
+    assert top["ROS_PACKAGE_PATH"] == f"/root/rcmp_ws/src:{NOETIC}/share"
+    assert top["PATH"] == env["PATH"] and top["ROS_DISTRO"] == "noetic"
+    # and each child of a space: /usr/bin first, ROS's programs found, the space's master and address
+    child = rcmp_service_item.child_env(top, "http://198.51.100.1:11312/", "198.51.100.2", "/h/log/ros")
+    assert child["PATH"].split(":")[:5] == ["/usr/bin", "/bin", "/usr/sbin", "/sbin", f"{NOETIC}/bin"]
+    assert (child["ROS_MASTER_URI"], child["ROS_IP"], child["ROS_DISTRO"]) == (
+        "http://198.51.100.1:11312/", "198.51.100.2", "noetic")
+
+
+def ros_config(home, text=""):
+    """A robot's configuration in ``home`` with ``text`` under its [main] section, as the agent loads it."""
+    from rcm_platform.rcmp_config import load_config
+    home.mkdir()
+    (home / "init.cfg").write_text("[main]\nname=robot1\n" + text)
+    return load_config(home)
+
+
+def setup_script(root, distro="noetic"):
+    (root / distro).mkdir(parents=True)
+    script = root / distro / "setup.bash"
+    script.write_text("# ROS's setup script\n")
+    return script
+
+
+def test_without_a_setup_script_nothing_changes(tmp_path):
+    setup_script(tmp_path / "ros")
+    for name, text, root in (("debian", "", tmp_path / "no-ros"), ("chosen", "ros_setup=none\n", tmp_path / "ros")):
+        environ, path = {"PATH": "/usr/bin:/bin", "PYTHONPATH": "/src/repo"}, ["", "/usr/lib/python3/dist-packages"]
+        config = ros_config(tmp_path / name, text)
+        assert rcmp_service_item.apply_ros_environment(config, environ, path, search_root=str(root)) is None
+        assert environ == {"PATH": "/usr/bin:/bin", "PYTHONPATH": "/src/repo"}
+        assert path == ["", "/usr/lib/python3/dist-packages"]
+
+
+@needs_root
+def test_the_found_script_goes_under_the_environment_and_its_python_packages_on_the_path(tmp_path, monkeypatch):
+    script = setup_script(tmp_path / "ros")
+    # its environment as ros_environment computes it (running bash is a system test's: test_ros_environment.py)
+    monkeypatch.setitem(rcmp_service_item._ros_environments, str(script),
+                        rcmp_service_item.RosEnvironment(str(script), NOETIC_KEPT))
+    config = ros_config(tmp_path / "home")
+    environ, path = {"PATH": "/usr/bin:/bin", "PYTHONPATH": "/src/repo"}, ["/here", "/usr/lib/python3.8"]
+    ros = rcmp_service_item.apply_ros_environment(config, environ, path, search_root=str(tmp_path / "ros"))
+    assert ros.setup == str(script)
+    assert environ["ROS_DISTRO"] == "noetic" and environ["PATH"].endswith(f":{NOETIC}/bin")
+    assert environ["PYTHONPATH"] == f"{NOETIC}/lib/python3/dist-packages:/src/repo"
+    assert path == ["/here", f"{NOETIC}/lib/python3/dist-packages", "/usr/lib/python3.8"]  # where PYTHONPATH goes
+    rcmp_service_item.apply_ros_environment(config, environ, path, search_root=str(tmp_path / "ros"))
+    assert path.count(f"{NOETIC}/lib/python3/dist-packages") == 1
+
+
+@needs_root
+@pytest.mark.parametrize("change", ["script", "folder", "owner"])
+def test_a_root_agent_refuses_a_setup_script_somebody_else_can_change(tmp_path, monkeypatch, change):
+    script = setup_script(tmp_path / "ros")
+    monkeypatch.setitem(rcmp_service_item._ros_environments, str(script),
+                        rcmp_service_item.RosEnvironment(str(script), NOETIC_KEPT))   # never used: refused first
+    if change == "script":
+        script.chmod(0o666)
+    elif change == "folder":
+        script.parent.chmod(0o775)
+    else:
+        os.chown(script, NOBODY.pw_uid, NOBODY.pw_gid)
+    config = ros_config(tmp_path / "home", f"ros_setup={script}\n")
+    environ, path = {"PATH": "/usr/bin:/bin"}, [""]
+    with pytest.raises(rcmp_service_item.RosSetupError) as info:
+        rcmp_service_item.apply_ros_environment(config, environ, path)
+    message = str(info.value)
+    assert message.startswith(f"{config.config_file}: key 'ros_setup': {script} or a folder above it is not "
+                              f"root's alone"), message
+    assert "\n" not in message and environ == {"PATH": "/usr/bin:/bin"} and path == [""]
+
+    # found rather than given: the line says where it was found
+    config = ros_config(tmp_path / "found")
+    with pytest.raises(rcmp_service_item.RosSetupError, match=r"key 'ros_setup' \(not set; .* found in "):
+        rcmp_service_item.apply_ros_environment(config, {}, [], search_root=str(tmp_path / "ros"))
+
+
+def test_a_given_setup_script_that_is_missing_stops_the_agent_with_one_line(tmp_path):
+    config = ros_config(tmp_path / "home", "ros_setup=/nonexistent/ros/setup.bash\n")
+    with pytest.raises(rcmp_service_item.RosSetupError) as info:
+        rcmp_service_item.apply_ros_environment(config, {}, [])
+    assert str(info.value) == (f"{config.config_file}: key 'ros_setup': /nonexistent/ros/setup.bash is not a "
+                               f"readable file")

@@ -74,3 +74,37 @@ def test_the_configuration_is_the_bottom_layer():
 def test_the_process_table_needs_only_the_bottom():
     """The VPN and the console start children through it, so it knows neither the runtime nor the items."""
     assert _imported("rcmp_process") <= {"rcmp_config"}
+
+
+ROS_MODULES = ("catkin", "catkin_pkg", "genpy", "genmsg")
+
+
+def _is_ros_module(name):
+    top = name.split(".")[0]
+    return top.startswith("ros") or top in ROS_MODULES or top.endswith(("_msgs", "_srvs"))
+
+
+def _imports_run_at_import(tree):
+    """The module names imported by statements that run when the module is imported (not in a function)."""
+    found, pending = [], list(tree.body)
+    while pending:
+        node = pending.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            continue
+        if isinstance(node, ast.Import):
+            found.extend(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            found.append(node.module or "")
+        pending.extend(ast.iter_child_nodes(node))
+    return found
+
+
+def test_no_module_imports_ros_when_it_is_imported():
+    """ROS's Python packages reach the agent's sys.path only when it starts (``apply_ros_environment``, from a
+    setup script such as /opt/ros/noetic/setup.bash): an import at a module's top level would run before."""
+    wrong = []
+    for module in LAYERS:
+        with open(os.path.join(PACKAGE, module + ".py"), encoding="utf-8") as f:
+            tree = ast.parse(f.read())
+        wrong += [f"{module} imports {name}" for name in _imports_run_at_import(tree) if _is_ros_module(name)]
+    assert wrong == []
