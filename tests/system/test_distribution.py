@@ -26,7 +26,7 @@ SEED_MASTER_MODULES = [
 EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
                  "rcmp_vpn.py",  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
                  # ours: split out of the seed's modules for one job each (CONTRACTS §6), master and robot zips
-                 "rcmp_config.py", "rcmp_process.py", "rcmp_service_item.py"]
+                 "rcmp_config.py", "rcmp_log_guard.py", "rcmp_process.py", "rcmp_service_item.py"]
 CONSOLE_MODULES = ["rcmp_console.py"]  # ours: the console (CONTRACTS §9), master zip only
 CONSOLE_FILES = ["rcm_platform/console/console.css", "rcm_platform/console/console.js",
                  "rcm_platform/console/index.html"]  # its static files, master zip only

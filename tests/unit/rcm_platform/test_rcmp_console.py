@@ -210,8 +210,8 @@ class ConsoleStreamTest(ConsoleCase):
         self.assertEqual(json.loads(body)["reason"], "there is no running service space named 'nobody'")
 
     @defer.inlineCallbacks
-    def test_a_loopback_client_without_a_watchers_key_is_closed(self):
-        from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
+    def test_a_process_that_is_not_a_watcher_is_closed_before_anything_is_read(self):
+        from twisted.internet.endpoints import UNIXClientEndpoint, connectProtocol
         from twisted.internet.protocol import Protocol
 
         class Client(Protocol):
@@ -220,14 +220,15 @@ class ConsoleStreamTest(ConsoleCase):
 
             def connectionLost(self, reason):
                 self.lost.callback(None)
-        port = self.console._listener.getHost().port
-        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
-        client.transport.write(b'{"name": "robot1", "key": "guessed"}\n')
-        yield client.lost                      # closed by the agent, not by the test
-        self.assertEqual(self.console._listener.factory.open, 0)
-        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
-        client.transport.write(b"x" * (rcmp_console.MAX_LINE + 10))   # an endless line
-        yield client.lost
+        path = self.console.watch_socket
+        self.assertEqual(os.stat(path).st_mode & 0o777, 0o600)             # the agent's (and watchers') user only
+        self.assertEqual(os.stat(os.path.dirname(path)).st_mode & 0o777, 0o700)
+        for _ in range(3):
+            client = yield connectProtocol(UNIXClientEndpoint(reactor, path), Client())
+            client.transport.write(b'{"name": "robot1", "key": "guessed"}\n')
+            yield client.lost                      # closed by the agent, not by the test
+        self.assertEqual(self.console.notes.left_out_total, 0)
+        self.assertTrue(all(w.link is None for w in self.console.watches.values()))
 
     def test_a_topic_name_that_is_not_one_is_refused(self):
         self.spaces.add(FakeSpace("robot3", []))
