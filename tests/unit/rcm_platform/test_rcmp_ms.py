@@ -36,3 +36,17 @@ def test_placement_goes_to_the_lowest_load_ties_to_the_master_then_by_name():
     assert choose_server(servers, {"master": 1, "vm1": 1, "vm2": 1}) is vm1
     assert choose_server(servers, {"master": 1, "vm1": 2, "vm2": 1}) is None   # no room anywhere
     assert choose_server([Server("master", 0, "a")], {}) is None         # 0: a pure coordinator
+
+
+def test_a_peers_item_report_is_kept_bounded_and_never_whole():
+    report = {"kind": "node", "name": "n" * 1000000, "state": float("nan"), "error": "e" * 100000,
+              "nodes": ["a"] * 5000 + [7, None], "node_types": {"a": ["pkg", "type"], "b": "not a pair"},
+              "extra": "x" * 100000, "i_name": ["not", "text"]}
+    kept = rcmp_ms.received_report(report)
+    assert set(kept) == {"kind", "name", "package", "type_or_file", "side", "i_name", "state", "error", "nodes",
+                         "node_types"}
+    assert len(kept["name"]) == rcmp_ms.REPORTED_NAME and len(kept["error"]) == rcmp_ms.REPORTED_TEXT
+    assert kept["state"] == "failed" and kept["i_name"] is None
+    assert len(kept["nodes"]) == rcmp_ms.REPORTED_NODES
+    assert kept["node_types"] == {"a": ["pkg", "type"]}
+    assert rcmp_ms.received_report({"kind": "node", "name": "x", "state": "running"})["state"] == "running"
