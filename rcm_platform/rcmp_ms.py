@@ -139,6 +139,7 @@ def _items_on(parts, host):
 
 
 DRIVER_EVENTS_KEPT = 50  # rcm_driver's last events a space keeps for service_space/read
+DRIVER_RECONNECTS = 10   # times a space connects to its rcm_driver again after the connection closed
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
 
@@ -189,7 +190,8 @@ class ServiceSpace:
         self.driver_waiters = []
         self.told = set()           # robot side: keys of the failures already reported
         self.teardown_waiters = None
-        self.reports_log = Budget(log, f"reports of items of service space {name}")   # robots report at will
+        self.notes = Budget(log, f"notes about service space {name}")   # robots report at will
+        self.driver_reconnects = 0
 
     def __repr__(self):
         return f"<ServiceSpace {self.name} {self.state}>"
@@ -641,7 +643,7 @@ class _SpaceHost:
             if space.cancelled or item.state not in (STARTING, RUNNING):
                 return None
             link = ic.DriverLink(space.name, lambda cmd, r_name: self._driver_said(space, cmd, r_name),
-                                 lambda lost: self._driver_lost(space, lost), key=item.driver_key)
+                                 lambda lost: self._driver_lost(space, item, lost), key=item.driver_key)
             return ic.connect_driver(self.reactor, item.driver_port, link)
 
         def give_up(exc):
@@ -666,9 +668,20 @@ class _SpaceHost:
             else:
                 space.driver_waiters.append((wanted, d))
 
-    def _driver_lost(self, space, link):
-        if space.driver_link is link:
-            space.driver_link = None
+    def _driver_lost(self, space, item, link):
+        """The link to rcm_driver closed. Unless we closed it (``say_goodbye_to_driver``) or the space or the driver
+        is going, connect again and say r_connection again (rcm_driver closes a connection that has not shown its
+        key in time, which a busy agent or a flood of other local connections can make ours), at most
+        ``DRIVER_RECONNECTS`` times per space."""
+        if space.driver_link is not link:
+            return
+        space.driver_link = None
+        if space.cancelled or item.state not in (STARTING, RUNNING) or space.driver_reconnects >= DRIVER_RECONNECTS:
+            return
+        space.driver_reconnects += 1
+        space.notes.warning("service space %s: the connection to rcm_driver closed; connecting again", space.name)
+        self.connect_driver(space, item).addErrback(
+            lambda failure: space.notes.warning("service space %s: %s", space.name, failure.getErrorMessage()))
 
     def _items_stopping(self, space):
         """The special items' ``stopping`` hooks (rcm_driver: r_disconnection, e_removed awaited with FIROS)."""
@@ -951,10 +964,10 @@ class ServiceSpaceManager(_SpaceHost):
                     item.remote = report
                     break
             else:
-                space.reports_log.warning("service space %s: an unknown item was reported: %s %s", ss_name,
+                space.notes.warning("service space %s: an unknown item was reported: %s %s", ss_name,
                                           shown(report["kind"], 40), shown(report["name"], 80))
                 return
-        space.reports_log.warning("service space %s: %s reports %s %s %s: %s", ss_name, shown(report["i_name"], 80),
+        space.notes.warning("service space %s: %s reports %s %s %s: %s", ss_name, shown(report["i_name"], 80),
                                   report["kind"], report["name"], report["state"], shown(report["error"]))
         self._pairing_may_have_changed(space)
 

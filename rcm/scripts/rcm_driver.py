@@ -48,8 +48,8 @@ DEFAULT_PORT = 9998
 MAX_LINE_BYTES = 4096            # an agent line longer than this is discarded (a robot name is short)
 MAX_PENDING_OUT_BYTES = 1 << 20  # an agent that stops reading is dropped rather than buffered forever
 MAX_AGENTS = 8                   # agent connections obeyed at once (the agent opens one per service space)
-MAX_UNPROVEN = 8                 # connections waiting to show the key; the oldest goes when another comes
-PROOF_DEADLINE = 2.0             # seconds a connection has to send its first line with the key
+MAX_UNPROVEN = 16                # connections waiting to show the key; the oldest goes when another comes
+PROOF_DEADLINE = 10.0            # seconds a connection has to send its first line with the key
 KEY_VARIABLE = "RCM_DRIVER_KEY"  # the one-time key the agent starts rcm_driver with (never on the command line)
 WARNING_BURST = 10               # warnings an agent connection (or ROS peer) can cause per window ...
 WARNING_PERIOD = 10.0            # ... of this many seconds; the rest are counted in one line
@@ -288,14 +288,17 @@ class AgentServer:
     def _run(self):
         try:
             while not self.stopping:
-                for key, events in self.selector.select(self._until_next_deadline()):
+                ready = self.selector.select(self._until_next_deadline())
+                # what connections sent first, then new connections: an agent's first line is read before a
+                # flood of new connections can push its connection out of the waiting ones
+                for key, events in sorted(ready, key=lambda pair: pair[0].data == "listen"):
                     if key.data == "listen":
                         self._accept()
                     elif key.data == "wake":
                         self._drain_wake()
                     else:
                         client = key.data
-                        if events & selectors.EVENT_READ:
+                        if events & selectors.EVENT_READ and client.sock in self.clients:
                             self._read(client)
                         if events & selectors.EVENT_WRITE and client.sock in self.clients:
                             self._flush(client)
@@ -337,6 +340,8 @@ class AgentServer:
         self.selector.register(sock, selectors.EVENT_READ, client)
         if proven:
             rospy.loginfo("rcm_driver: agent %s connected (%d connection(s))", client.peer, self._count(True))
+        else:
+            self._read(client)       # an agent writes its first line as it connects: often it is here already
 
     def _count(self, proven):
         return sum(1 for c in self.clients.values() if c.proven == proven)
