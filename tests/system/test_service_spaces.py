@@ -390,6 +390,24 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(again.inbound_port, spaces[0].inbound_port)
 
     @defer.inlineCallbacks
+    def _driver_says_connected_and_carries_events(self, space):
+        """rcm_driver's latched /rcm/robot_event says robot1 CONNECTED, and a CB_Event comes back to the agent."""
+        env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
+                   ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
+        echoed = yield threads.deferToThread(subprocess.run, [
+            "rostopic", "echo", "-n", "1", "/rcm/robot_event"], env=env, capture_output=True, text=True,
+            timeout=30)
+        self.assertIn("instance_name: \"robot1\"", echoed.stdout)
+        self.assertIn("instance_status: 1", echoed.stdout)
+        yield threads.deferToThread(subprocess.run, [
+            "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
+            "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
+        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
+                            what="e_created from rcm_driver")
+        self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
+                      describe(self.manager, "robot1")["rcm_driver_events"])
+
+    @defer.inlineCallbacks
     def test_rcm_driver_is_told_about_the_robot(self):
         self.manager.driver_goodbye_timeout = 0.5
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
@@ -400,22 +418,7 @@ class ServiceSpaceTests(unittest.TestCase):
         # rcm_driver's default port or the next free ones, never an ephemeral (port-0) one that a stranger can take
         self.assertTrue(rcmp_ms.RCM_DRIVER_PORT <= driver.driver_port < 32768, driver.driver_port)
         self.assertIsNotNone(space.driver_link)
-        env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
-                   ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
-        # rcm_driver publishes the robot's connection (latched) once told r_connection
-        echoed = yield threads.deferToThread(subprocess.run, [
-            "rostopic", "echo", "-n", "1", "/rcm/robot_event"], env=env, capture_output=True, text=True,
-            timeout=30)
-        self.assertIn("instance_name: \"robot1\"", echoed.stdout)
-        self.assertIn("instance_status: 1", echoed.stdout)
-        # and carries FIROS's entity events back on our connection
-        yield threads.deferToThread(subprocess.run, [
-            "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
-            "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
-        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
-                            what="e_created from rcm_driver")
-        self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
-                      describe(self.manager, "robot1")["rcm_driver_events"])
+        yield self._driver_says_connected_and_carries_events(space)
         yield self.manager.teardown("robot1")
 
 
@@ -449,19 +452,9 @@ class ServiceSpaceTests(unittest.TestCase):
         closed, squatters = yield threads.deferToThread(attack)
         self.addCleanup(lambda: [s.close() for s in squatters])
         self.assertEqual(closed, [True] * 6)
-        env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
-                   ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
-        # the robot is still connected as far as FIROS hears: no stranger's r_disconnection was published
-        echoed = yield threads.deferToThread(subprocess.run, [
-            "rostopic", "echo", "-n", "1", "/rcm/robot_event"], env=env, capture_output=True, text=True,
-            timeout=30)
-        self.assertIn("instance_status: 1", echoed.stdout)
-        # and the agent's own connection still carries FIROS's events back, with the squatters still there
-        yield threads.deferToThread(subprocess.run, [
-            "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
-            "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
-        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
-                            what="e_created from rcm_driver")
+        # no stranger's r_disconnection was published, and the agent's own connection still carries FIROS's
+        # events back, with the squatters still there
+        yield self._driver_says_connected_and_carries_events(space)
         output = driver.process.tail(200)
         self.assertEqual(output.count("r_disconnection robot1"), 0, output)
         self.assertIn("does not carry the key", output)
