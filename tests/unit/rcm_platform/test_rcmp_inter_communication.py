@@ -243,7 +243,10 @@ class DriverLinkTests(unittest.TestCase):
     """The agent's end of rcm_driver's port: the key on every line, garbage logged through a budget."""
 
     def link(self, key=None):
-        from twisted.internet.testing import StringTransport
+        try:
+            from twisted.internet.testing import StringTransport
+        except ImportError:      # Twisted before 19.7 (Ubuntu 20.04)
+            from twisted.test.proto_helpers import StringTransport
         said = []
         link = ic.DriverLink("robot1", lambda cmd, name: said.append((cmd, name)), key=key)
         link.makeConnection(StringTransport())
