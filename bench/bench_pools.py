@@ -188,11 +188,11 @@ def main(argv=None):
     met = unserved == 0 and worst < TARGET_P99_MS
     body = (f"`bench/bench_pools.py`: a real master on loopback; a client from {CLIENT} measured {SAMPLES} times "
             "per pool, quiet and while other addresses hold their whole share of every pool at once (the console's "
-            "streams as issue 18's row 3 held them).\n\n" + "\n".join(lines) +
+            "streams as in the attack the tests replay: 64 from two addresses, never read).\n\n" + "\n".join(lines) +
             f"\n\nLoad average (1 / 5 min) {load_before} before, {load_average()} after.\n\n"
             f"Target: every request served and p99 under {TARGET_P99_MS:.0f} ms while the pools are held: "
             f"{'met' if met else 'MISSED'} (worst p99 {worst:.1f} ms, {unserved} not served).")
-    write_section("pools", "Shared pools: another address served while one holds its share (issue 18)", body)
+    write_section("pools", "Shared pools: another address served while one holds its share", body)
     print(body)
     return 0 if met else 1
 
