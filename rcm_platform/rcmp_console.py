@@ -28,6 +28,10 @@ Owns the console's resources and its live data, nothing else:
   topics pages watch at most ``WATCH_RATE`` samples a second, each already reduced to a point, a number or a
   bounded text. The node is stopped ``WATCH_GRACE`` seconds after the last page stops watching, or when the
   space goes.
+
+About 1,000 lines, more than the 900 or so of the other modules: the agent's side of the topic watchers and the
+watcher node's side (``watch_main``, the only place rospy is imported) are the two ends of one private line
+protocol, kept in one module so that they change together.
 """
 
 import argparse

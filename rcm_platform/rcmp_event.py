@@ -392,7 +392,7 @@ class MasterAgent(service.Service):
         if peer.info.get("hello_pending"):     # being answered: look again later
             peer.info["hello_call"] = self.reactor.callLater(HELLO_WAIT, self._hello_overdue, peer)
             return
-        log.warning("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_WAIT)
+        self._log_refusal("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_WAIT)
         peer.abort("no hello in time")
 
     def peer_lost(self, peer, why):
