@@ -57,7 +57,7 @@ from zope.interface import implementer
 
 from .rcmp_command import CommandError, validate_name
 from .rcmp_inter_communication import ConnectionCaps, strict_dumps
-from .rcmp_log_guard import Budget
+from .rcmp_log_guard import Budget, shown
 from .rcmp_process import DONE_STATES, LIVE_STATES
 from .rcmp_service_item import child_env
 
@@ -464,8 +464,8 @@ class Console:
 
     def _send_detail(self, name, detail):
         event = sse("detail", {"ss_name": name, "detail": detail})
-        for stream, shown in list(self.streams.items()):
-            if shown == name:
+        for stream, showing in list(self.streams.items()):
+            if showing == name:
                 stream.send(event)
 
     def _ask_robots(self):
@@ -635,8 +635,8 @@ class TopicWatch:
         self.types[topic] = type_name
         self.samples.setdefault(topic, collections.deque(maxlen=WATCH_HISTORY)).append(sample)
         event = sse("sample", {"topic": topic, "type": type_name, "sample": sample})
-        for stream, shown in list(self.streams.items()):
-            if shown == topic:
+        for stream, showing in list(self.streams.items()):
+            if showing == topic:
                 stream.send(event)
 
     def space_gone(self):
@@ -822,7 +822,7 @@ class ConsoleResource(resource.Resource):
                 return _json_error(request, 405, f"{path} takes GET only")
             found = self.files.get(name)
             if found is None:
-                return _json_error(request, 404, f"there is no console file {path!r}")
+                return _json_error(request, 404, f"there is no console file {shown(path, 100)}")
             request.setHeader(b"Content-Type", found[1])
             request.setHeader(b"Cache-Control", b"no-cache")
             return found[0]
@@ -856,7 +856,7 @@ class ConsoleResource(resource.Resource):
                 return server.NOT_DONE_YET
         except CommandError as exc:
             return _json_error(request, exc.status, str(exc))
-        return _json_error(request, 404, f"unknown console call {path!r}")
+        return _json_error(request, 404, f"unknown console call {shown(path, 100)}")
 
 
 # -- topic watching: the watcher node (a child process; the only place rospy is imported) -------------------
