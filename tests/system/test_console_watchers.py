@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from tests.support.lifecycle import Platform
+from tests.support.lifecycle import Platform, processes_mentioning
 from tests.support.polling import wait_until
 from tests.support.processes import ros_env
 from tests.system.test_shared_pools import EventStream
@@ -144,3 +144,40 @@ def test_row5_a_topic_carrying_nan_reaches_the_page_as_strict_json(platform, pro
     finally:
         page.close()
     assert (point["x"], point["y"], point["theta"]) == ("NaN", 1.5, "Infinity")
+
+
+def test_with_run_as_the_watcher_runs_as_that_user_and_only_it_may_open_the_socket(procs, tmp_path):
+    """``run_as=nobody``: the watcher node runs as nobody, so the socket is nobody's (0600) in a folder others may
+    pass through but not list (0711); another user (``daemon``) still cannot open it, and the page gets its topics."""
+    if os.geteuid() != 0:
+        pytest.skip("switching users needs a root agent")
+    import pwd
+    nobody = pwd.getpwnam("nobody")
+    plat = Platform(procs, tmp_path / "platform", inbound_ports=0, run_as="nobody")
+    plat.master.start()
+    try:
+        plat.provision_robot("robot1", "empty")
+        plat.robot("robot1", "127.0.0.2").start()
+        plat.wait_state("robot1", True, True, timeout=30)
+        path = watchers_socket(plat.master.process.pid)
+        info, folder = os.stat(path), os.stat(os.path.dirname(path))
+        assert (info.st_uid, info.st_mode & 0o777) == (nobody.pw_uid, 0o600)
+        assert (folder.st_uid, folder.st_mode & 0o777) == (0, 0o711)
+        attempt = subprocess.run(
+            ["/usr/bin/setpriv", "--reuid=daemon", "--regid=daemon", "--clear-groups", "/usr/bin/python3", "-c",
+             "import socket, sys\ns = socket.socket(socket.AF_UNIX)\n"
+             "try:\n    s.connect(sys.argv[1]); print('connected')\n"
+             "except OSError as e:\n    print(type(e).__name__)\n", path],
+            capture_output=True, text=True, timeout=30)
+        assert attempt.stdout.strip() == "PermissionError", attempt
+        page = EventStream(plat, "127.0.0.1", "/console/api/topic?ss_name=robot1")
+        try:
+            assert page.status() == 200
+            wait_until(lambda: (lambda t: t if t["topics"] else None)(page.event("topics")), timeout=30,
+                       message="the topics of a watcher running as nobody")
+        finally:
+            page.close()
+        watchers = [pid for pid, line in processes_mentioning(path) if "rcmp_console watch" in line]
+        assert watchers and all(os.stat(f"/proc/{pid}").st_uid == nobody.pw_uid for pid in watchers)
+    finally:
+        plat.stop_all_and_check_nothing_left()
