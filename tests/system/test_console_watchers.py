@@ -64,6 +64,17 @@ def watchers_socket(master_pid):
     raise AssertionError("the master has no console socket")
 
 
+def connect_as(user, group, path):
+    """Try to open the socket at ``path`` as another local user: "connected" or the error's name."""
+    attempt = subprocess.run(
+        ["/usr/bin/setpriv", f"--reuid={user}", f"--regid={group}", "--clear-groups", "/usr/bin/python3", "-c",
+         "import socket, sys\ns = socket.socket(socket.AF_UNIX)\n"
+         "try:\n    s.connect(sys.argv[1]); print('connected')\n"
+         "except OSError as e:\n    print(type(e).__name__)\n", path],
+        capture_output=True, text=True, timeout=30)
+    return attempt.stdout.strip() or attempt.stderr.strip()
+
+
 def knock(path, line=b'{"name": "robot1", "key": "guessed"}\n'):
     """Connect to the watchers' socket, send a bad hello, and say whether the master closed it at once."""
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
@@ -80,14 +91,7 @@ def test_row8_other_users_cannot_connect_and_impostors_cannot_keep_the_watcher_o
     master = platform.master
     path = watchers_socket(master.process.pid)
     # another local user: the socket cannot even be opened
-    attempt = subprocess.run(
-        ["/usr/bin/setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups", "/usr/bin/python3", "-c",
-         "import socket, sys\n"
-         "s = socket.socket(socket.AF_UNIX)\n"
-         "try:\n    s.connect(sys.argv[1]); print('connected')\n"
-         "except OSError as e:\n    print(type(e).__name__)\n", path],
-        capture_output=True, text=True, timeout=30)
-    assert attempt.stdout.strip() == "PermissionError", attempt
+    assert connect_as("nobody", "nogroup", path) == "PermissionError"
     # the agent's own user, but not a watcher: each connection is closed at once, before the watcher exists ...
     log_before = len(master.log_text())
     started = time.monotonic()
@@ -163,13 +167,7 @@ def test_with_run_as_the_watcher_runs_as_that_user_and_only_it_may_open_the_sock
         info, folder = os.stat(path), os.stat(os.path.dirname(path))
         assert (info.st_uid, info.st_mode & 0o777) == (nobody.pw_uid, 0o600)
         assert (folder.st_uid, folder.st_mode & 0o777) == (0, 0o711)
-        attempt = subprocess.run(
-            ["/usr/bin/setpriv", "--reuid=daemon", "--regid=daemon", "--clear-groups", "/usr/bin/python3", "-c",
-             "import socket, sys\ns = socket.socket(socket.AF_UNIX)\n"
-             "try:\n    s.connect(sys.argv[1]); print('connected')\n"
-             "except OSError as e:\n    print(type(e).__name__)\n", path],
-            capture_output=True, text=True, timeout=30)
-        assert attempt.stdout.strip() == "PermissionError", attempt
+        assert connect_as("daemon", "daemon", path) == "PermissionError"
         page = EventStream(plat, "127.0.0.1", "/console/api/topic?ss_name=robot1")
         try:
             assert page.status() == 200
