@@ -17,7 +17,7 @@ Rules (``docs/PROTOCOL.md`` is the reference):
   most ``MAX_BYTES_BEFORE_ADMISSION`` bytes in all, so a stranger costs a few KB at most;
 - a listener holds at most ``max_connections`` connections, and at most ``max_per_address`` from one source
   address; a connection over a cap is closed as soon as it is accepted, before anything is read. The counting
-  is ``ConnectionCaps``, which the RDAPI's listener uses too;
+  is ``ConnectionCaps``, which the RDAPI's listener and the console's streams use too;
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
@@ -357,8 +357,9 @@ class PeerFactory(protocol.Factory):
 
 class ConnectionCaps:
     """The caps of one listener on its open connections: in all (``max_connections``) and from one source address
-    (``max_per_address``). The agent port (``ListeningFactory``) and the RDAPI's listener
-    (``rcmp_ext_connector.RdapiSite``) both count their connections here; each words its own refusal."""
+    (``max_per_address``). The agent port (``ListeningFactory``), the RDAPI's listener
+    (``rcmp_ext_connector.RdapiSite``) and the console's streams (``rcmp_console.Console``) count their connections
+    here; each words its own refusal."""
 
     def __init__(self, max_connections, max_per_address):
         self.max_connections = max_connections
