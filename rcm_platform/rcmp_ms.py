@@ -538,7 +538,7 @@ class _SpaceHost:
         for item in remote:
             item.remote = reports.get((item.kind, item.name)) or {
                 **item.report(), "state": FAILED, "error": f"the {what} did not report this item"}
-            item.remote.setdefault("i_name", item.i_name)
+            item.remote["i_name"] = item.remote.get("i_name") or item.i_name
             item.nodes = list(item.remote.get("nodes") or [])
             item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
 
