@@ -39,39 +39,34 @@ def _connect(port, source, timeout=10):
     return socket.create_connection(("127.0.0.1", port), timeout=timeout, source_address=(source, 0))
 
 
-def _http_head(sock, path):
-    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
-
-
-def first_snapshot(master):
-    """Seconds from a new stream's request to its snapshot event."""
+def _http_get(port, path, complete, close=False):
+    """Seconds from sending ``GET path`` on a new connection until ``complete(data so far)`` (or, without it, the
+    server closing the connection); ConnectionError unless the answer is a 200."""
     started = time.monotonic()
-    with _connect(master.ext_port, CLIENT) as sock:
-        _http_head(sock, "/console/api/events")
+    with _connect(port, CLIENT) as sock:
+        extra = "Connection: close\r\n" if close else ""
+        sock.sendall(f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n{extra}\r\n".encode())
         data = b""
-        while b"event: snapshot" not in data or b"\n\n" not in data.split(b"event: snapshot", 1)[1]:
+        while not (complete and complete(data)):
             chunk = sock.recv(65536)
             if not chunk:
-                raise ConnectionError(f"stream closed: {data[:200]!r}")
-            data += chunk
-        if not data.startswith(b"HTTP/1.1 200"):
-            raise ConnectionError(data.split(b"\r\n", 1)[0].decode())
-    return time.monotonic() - started
-
-
-def rdapi_read(master):
-    started = time.monotonic()
-    with _connect(master.ext_port, CLIENT) as sock:
-        sock.sendall(b"GET /platform_instance/read HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
-        data = b""
-        while True:
-            chunk = sock.recv(65536)
-            if not chunk:
+                if complete:
+                    raise ConnectionError(f"closed early: {data[:200]!r}")
                 break
             data += chunk
         if not data.startswith(b"HTTP/1.1 200"):
             raise ConnectionError(data.split(b"\r\n", 1)[0].decode())
     return time.monotonic() - started
+
+
+def first_snapshot(master):
+    """Seconds from a new stream's request to its whole snapshot event."""
+    return _http_get(master.ext_port, "/console/api/events",
+                     lambda data: b"\n\n" in data.split(b"event: snapshot", 1)[-1] and b"event: snapshot" in data)
+
+
+def rdapi_read(master):
+    return _http_get(master.ext_port, "/platform_instance/read", None, close=True)
 
 
 def hello_answer(master):
@@ -106,7 +101,7 @@ class Holders:
         self.streams_accepted = 0
         for n in range(64):
             sock = _connect(master.ext_port, "127.0.0.2" if n % 2 else "127.0.0.3")
-            _http_head(sock, "/console/api/events")
+            sock.sendall(b"GET /console/api/events HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
             self.streams_accepted += sock.recv(12).startswith(b"HTTP/1.1 200")
             self.socks.append(sock)
         self.socks += [_connect(master.ext_port, "127.0.0.4") for _ in range(32)]
