@@ -10,15 +10,28 @@ Owns the console's resources and its live data, nothing else:
   appears, changes or goes). It coalesces them (``COALESCE`` seconds), rebuilds a snapshot with the code the
   RDAPI reads use (``PlatformCommands.read``, ``RoboticsData.service_logic``, ``ServiceSpaceManager.describe``)
   and pushes each stream only what differs from the last snapshot. A new stream gets the whole snapshot first.
-  Streams are bounded in number (``MAX_CLIENTS``, 503 beyond) and in buffered bytes (a client that does not
-  read is dropped), and get a heartbeat comment every ``HEARTBEAT`` seconds;
+  Streams (event and topic streams alike) are a pool with a share per source address: at most ``MAX_CLIENTS``
+  in all and ``MAX_PER_ADDRESS`` from one address (``rcmp_inter_communication.ConnectionCaps``; 503 beyond), so
+  one address holding its share leaves the others served. A stream must be read: one whose connection stays
+  full for ``DRAIN_DEADLINE`` seconds, or that queues ``MAX_BUFFER`` bytes, is dropped; and each lasts at most
+  ``STREAM_LIFETIME`` seconds (the page opens the next one at once and gets a fresh snapshot), since Twisted's
+  idle timeout does not run while a request is answered. Streams get a heartbeat comment every ``HEARTBEAT``
+  seconds. What they carry is strict JSON (``rcmp_inter_communication.strict_dumps``: a NaN or infinite number
+  of a topic is the string ``"NaN"``, ``"Infinity"`` or ``"-Infinity"``);
 - live topic views (``/console/api/topic``): the agent keeps no rospy. Per watched service space it starts one
   small ROS node, this module run as ``python3 -m rcm_platform.rcmp_console watch`` under the master's process
-  table with the space's ``ROS_MASTER_URI``. The node connects to a loopback port the agent listens on, proves
-  with a one-time key that the agent started it, and hands back JSON lines: the space's topics, and for the
+  table with the space's ``ROS_MASTER_URI``. The node connects to a Unix socket the agent listens on (in a
+  folder of its own, the socket readable by the agent's and the watchers' user only; ``_WatcherFactory``), where
+  a connection is kept only when the kernel says it comes from a watcher process the agent started
+  (``SO_PEERCRED``), before anything is read; it then proves with a one-time key that it is that space's
+  watcher, and hands back JSON lines: the space's topics, and for the
   topics pages watch at most ``WATCH_RATE`` samples a second, each already reduced to a point, a number or a
   bounded text. The node is stopped ``WATCH_GRACE`` seconds after the last page stops watching, or when the
   space goes.
+
+About 1,000 lines, more than the 900 or so of the other modules: the agent's side of the topic watchers and the
+watcher node's side (``watch_main``, the only place rospy is imported) are the two ends of one private line
+protocol, kept in one module so that they change together.
 """
 
 import argparse
@@ -28,7 +41,11 @@ import logging
 import mimetypes
 import os
 import secrets
+import shutil
+import socket
+import struct
 import sys
+import tempfile
 import time
 
 from twisted.application import service
@@ -39,6 +56,8 @@ from twisted.internet.interfaces import IPushProducer
 from zope.interface import implementer
 
 from .rcmp_command import CommandError, validate_name
+from .rcmp_inter_communication import ConnectionCaps, strict_dumps
+from .rcmp_log_guard import Budget, shown
 from .rcmp_process import DONE_STATES, LIVE_STATES
 from .rcmp_service_item import child_env
 
@@ -48,7 +67,10 @@ STATIC_DIR = os.path.join(os.path.dirname(os.path.abspath(__file__)), "console")
 COALESCE = 0.05          # seconds between the first change and the snapshot pushed for it
 HEARTBEAT = 15.0         # seconds between two comments on an idle stream
 MAX_CLIENTS = 64         # event streams at once (topic streams included)
+MAX_PER_ADDRESS = 8      # of which from one source address (an operator's page opens one or two)
 MAX_BUFFER = 1 << 20     # bytes queued for one stream that does not read before it is dropped
+DRAIN_DEADLINE = 30.0    # seconds a stream's connection may stay full (its client not reading) before it is dropped
+STREAM_LIFETIME = 1800.0  # seconds a stream lasts; the page then opens the next one at once
 TAIL_LINES = 12          # log lines per item in a space's detail
 DETAIL_REFRESH = 1.0     # seconds between two looks at the log tails of the spaces pages look at
 MAX_WATCHES = 8          # service spaces whose topics are watched at once
@@ -61,26 +83,36 @@ MAX_TEXT = 2000          # characters of a message shown as text
 
 
 def sse(event, payload):
-    """One Server-Sent Event: ``event:`` line and the payload as one JSON ``data:`` line."""
-    data = json.dumps(payload, sort_keys=True, separators=(",", ":"))
+    """One Server-Sent Event: ``event:`` line and the payload as one strict JSON ``data:`` line."""
+    data = strict_dumps(payload, sort_keys=True, separators=(",", ":"))
     return f"event: {event}\ndata: {data}\n\n".encode("utf-8")
 
 
 # -- one stream -------------------------------------------------------------------------------------------------
 
+def client_host(request):
+    """The source address of ``request``'s connection (never a header)."""
+    return getattr(request.getClientAddress(), "host", None) or "?"
+
+
 @implementer(IPushProducer)
 class Stream:
-    """One open event stream: writes while the connection keeps up, queues up to ``max_buffer`` bytes while the
-    transport says it is full, and drops the client beyond that."""
+    """One open event stream of ``console``'s pool: writes while the connection keeps up, queues up to
+    ``console.max_buffer`` bytes while the transport says it is full, and drops the client beyond that or when the
+    connection stays full for ``console.drain_deadline`` seconds; ends normally after ``console.stream_lifetime``.
+    Counted in ``console.caps`` (under its client's address) from here until it closes."""
 
-    def __init__(self, request, on_close, max_buffer=MAX_BUFFER):
+    def __init__(self, request, on_close, console):
         self.request = request
-        self.max_buffer = max_buffer
+        self.console = console
         self.paused = False
         self.closed = False
         self.pending = []
         self.pending_bytes = 0
         self._on_close = on_close
+        self._drain = None
+        self._end = console.reactor.callLater(console.stream_lifetime, self.end)
+        console.caps.opened(self, client_host(request))
         request.setResponseCode(200)
         request.setHeader(b"Content-Type", b"text/event-stream; charset=utf-8")
         request.setHeader(b"Cache-Control", b"no-cache, no-store")
@@ -95,17 +127,27 @@ class Stream:
         if self.paused:
             self.pending.append(data)
             self.pending_bytes += len(data)
-            if self.pending_bytes > self.max_buffer:
-                log.info("console: dropping a stream that does not read (%d bytes queued)", self.pending_bytes)
+            if self.pending_bytes > self.console.max_buffer:
+                self.console.notes.info("console: dropping a stream that does not read (%d bytes queued)",
+                                        self.pending_bytes)
                 self.abort()
             return
         self.request.write(data)
 
     def pauseProducing(self):
         self.paused = True
+        if self._drain is None and not self.closed:
+            self._drain = self.console.reactor.callLater(self.console.drain_deadline, self._not_read)
+
+    def _not_read(self):
+        self._drain = None
+        self.console.notes.info("console: dropping a stream whose client has not read for %g s",
+                                self.console.drain_deadline)
+        self.abort()
 
     def resumeProducing(self):
         self.paused = False
+        self._cancel("_drain")
         pending, self.pending, self.pending_bytes = self.pending, [], 0
         for data in pending:
             self.send(data)
@@ -132,12 +174,21 @@ class Stream:
     def _finished(self, _):
         self._close()
 
+    def _cancel(self, name):
+        call = getattr(self, name)
+        setattr(self, name, None)
+        if call is not None and call.active():
+            call.cancel()
+
     def _close(self):
         if self.closed:
             return
         self.closed = True
+        self._cancel("_drain")
+        self._cancel("_end")
         self.pending = []
         self.pending_bytes = 0
+        self.console.caps.closed(self)
         self._on_close(self)
 
 
@@ -148,7 +199,8 @@ class Console:
 
     def __init__(self, reactor, data, platform, spaces, table, describe=None, env=None, coalesce=COALESCE,
                  heartbeat=HEARTBEAT, max_clients=MAX_CLIENTS, max_buffer=MAX_BUFFER, detail_refresh=DETAIL_REFRESH,
-                 watch_grace=WATCH_GRACE):
+                 watch_grace=WATCH_GRACE, max_per_address=MAX_PER_ADDRESS, drain_deadline=DRAIN_DEADLINE,
+                 stream_lifetime=STREAM_LIFETIME):
         """``spaces``: the ServiceSpaceManager (its ``spaces`` and ``observers``); ``describe``: what answers
         ``service_space/read`` (the master agent's ``describe``; default the manager's)."""
         self.reactor = reactor
@@ -161,7 +213,11 @@ class Console:
         self.coalesce = coalesce
         self.heartbeat = heartbeat
         self.max_clients = max_clients
+        self.caps = ConnectionCaps(max_clients, max_per_address)   # every stream, event and topic alike
         self.max_buffer = max_buffer
+        self.drain_deadline = drain_deadline
+        self.stream_lifetime = stream_lifetime
+        self.notes = Budget(log, "notes about console streams and watchers", clock=reactor.seconds)
         self.detail_refresh = detail_refresh
         self.watch_grace = watch_grace
         self.streams = {}           # Stream -> ss_name it shows in detail, or None
@@ -195,8 +251,20 @@ class Console:
         self._detail_loop = task.LoopingCall(lambda: (self._refresh_details(), self._ask_robots()))
         self._detail_loop.clock = self.reactor
         self._detail_loop.start(self.detail_refresh, now=False)
-        self._listener = self.reactor.listenTCP(0, _WatcherFactory(self), interface="127.0.0.1")
+        self._listen_for_watchers()
         self.changed()
+
+    def _listen_for_watchers(self):
+        """The watchers' Unix socket, in a folder of its own (0700, or 0711 when the watchers run as another user:
+        they may reach the socket by its name, nobody may list the folder); the socket is the watchers' user's,
+        0600: no other local user can connect, and ``_WatcherLink`` keeps only the watchers' own processes."""
+        self.watch_dir = tempfile.mkdtemp(prefix="rcmp-console-")
+        self.watch_socket = os.path.join(self.watch_dir, "watchers")
+        self._listener = self.reactor.listenUNIX(self.watch_socket, _WatcherFactory(self), mode=0o600)
+        run_as = getattr(self.spaces, "run_as", None)
+        if run_as is not None and run_as.uid != os.geteuid():
+            os.chown(self.watch_socket, run_as.uid, run_as.gid)
+            os.chmod(self.watch_dir, 0o711)
 
     @defer.inlineCallbacks
     def stop(self):
@@ -216,6 +284,7 @@ class Console:
         if self._listener is not None:
             yield self._listener.stopListening()
             self._listener = None
+            shutil.rmtree(self.watch_dir, ignore_errors=True)
 
     def _data_changed(self, generation):
         """RoboticsData observer: runs on the writing thread."""
@@ -395,8 +464,8 @@ class Console:
 
     def _send_detail(self, name, detail):
         event = sse("detail", {"ss_name": name, "detail": detail})
-        for stream, shown in list(self.streams.items()):
-            if shown == name:
+        for stream, showing in list(self.streams.items()):
+            if showing == name:
                 stream.send(event)
 
     def _ask_robots(self):
@@ -409,12 +478,20 @@ class Console:
             stream.send(b": heartbeat\n\n")
 
     # -- streams ----------------------------------------------------------------------------------------
-    def full(self):
-        return len(self.streams) + sum(len(w.streams) for w in self.watches.values()) >= self.max_clients
+    def refusal(self, request):
+        """Why the pool cannot take a stream from ``request``'s address (a sentence for a 503), or None."""
+        host = client_host(request)
+        over = self.caps.over(host)
+        if over == "total":
+            return f"the console already serves {self.caps.max_connections} streams; try again later"
+        if over == "address":
+            return (f"the console already serves {self.caps.max_per_address} streams to {host}; close some (other "
+                    f"tabs or windows of the console) first")
+        return None
 
     def open_stream(self, request, detail=None):
         """Start an event stream on ``request``: the current snapshot first (or as soon as there is one)."""
-        stream = Stream(request, self._stream_closed, self.max_buffer)
+        stream = Stream(request, self._stream_closed, self)
         self.streams[stream] = detail
         if self.snapshot is not None:
             stream.send(sse("snapshot", self.snapshot))
@@ -446,8 +523,13 @@ class Console:
             raise WatchLimit(f"the topic watcher of '{ss_name}' is still stopping; try again in a moment")
         watch = TopicWatch(self, ss_name, space.ros_master_uri, getattr(self.spaces, "address", None))
         self.watches[ss_name] = watch
-        watch.start(self._listener.getHost().port)
+        watch.start(self.watch_socket)
         return watch
+
+    def watch_of_process(self, pid):
+        """The live TopicWatch whose watcher process has ``pid``, or None."""
+        return next((w for w in self.watches.values()
+                     if not w.stopping and w.process is not None and w.process.pid == pid), None)
 
 
 class ConsoleService(service.Service):
@@ -492,13 +574,13 @@ class TopicWatch:
         self._grace = None
         self._sent_watch = None
 
-    def start(self, port):
+    def start(self, socket_path):
         package_root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
         run_as = getattr(self.console.spaces, "run_as", None)   # it reads robots' traffic: never as root
         env = child_env(self.console.env, self.ros_master_uri, self.address,
                         os.path.join(self.console.table.log_dir, "ros"), user=run_as)
         env["PYTHONPATH"] = package_root + (":" + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
-        argv = ["/usr/bin/python3", "-m", "rcm_platform.rcmp_console", "watch", "--port", str(port),
+        argv = ["/usr/bin/python3", "-m", "rcm_platform.rcmp_console", "watch", "--socket", socket_path,
                 "--name", self.ss_name]
         env["RCMP_CONSOLE_KEY"] = self.key   # not on the command line, where any local user could read it
         self.process = self.console.table.spawn(f"console/watch/{self.ss_name}", argv, env,
@@ -506,7 +588,7 @@ class TopicWatch:
         log.info("console: watching the topics of service space %s", self.ss_name)
 
     def open_stream(self, request, topic):
-        stream = Stream(request, self._stream_closed, self.console.max_buffer)
+        stream = Stream(request, self._stream_closed, self.console)
         self.streams[stream] = topic
         if self._grace is not None and self._grace.active():
             self._grace.cancel()
@@ -531,7 +613,7 @@ class TopicWatch:
         wanted = self.wanted()
         if self.link is not None and wanted != self._sent_watch:
             self._sent_watch = wanted
-            self.link.sendLine(json.dumps({"watch": wanted}).encode())
+            self.link.sendLine(strict_dumps({"watch": wanted}).encode())
         for topic in list(self.samples):
             if topic not in wanted:
                 del self.samples[topic]
@@ -553,8 +635,8 @@ class TopicWatch:
         self.types[topic] = type_name
         self.samples.setdefault(topic, collections.deque(maxlen=WATCH_HISTORY)).append(sample)
         event = sse("sample", {"topic": topic, "type": type_name, "sample": sample})
-        for stream, shown in list(self.streams.items()):
-            if shown == topic:
+        for stream, showing in list(self.streams.items()):
+            if showing == topic:
                 stream.send(event)
 
     def space_gone(self):
@@ -585,20 +667,43 @@ class TopicWatch:
         return d
 
 
+def peer_pid(transport):
+    """The process id the kernel gives for the other end of a Unix socket connection (``SO_PEERCRED``), or None."""
+    try:
+        creds = transport.getHandle().getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+        return struct.unpack("3i", creds)[0]
+    except (AttributeError, OSError, struct.error):
+        return None
+
+
 class _WatcherLink(LineReceiver):
-    """The agent's end of one watcher's loopback connection: a hello with the key, then JSON lines."""
+    """The agent's end of one watcher's connection: kept only when its process is a watcher the agent started (the
+    kernel's word, before anything is read); then a hello with that watch's name and key, then JSON lines."""
 
     delimiter = b"\n"
     MAX_LENGTH = MAX_LINE
+    HELLO_WAIT = 5.0
 
     def __init__(self, console):
         self.console = console
-        self.watch = None
+        self.expected = None        # the TopicWatch whose process connected
+        self.watch = None           # the same, once its hello came
+        self._hello_timeout = None
 
     def connectionMade(self):
-        self._hello_timeout = self.console.reactor.callLater(10.0, self.transport.loseConnection)
+        pid = peer_pid(self.transport)
+        watch = self.console.watch_of_process(pid) if pid is not None else None
+        if watch is None or watch.link is not None:
+            self.console.notes.warning("console: closed a connection to the watchers' socket from process %s, "
+                                       "which is not a topic watcher waiting to link", pid)
+            self.transport.abortConnection()
+            return
+        self.expected = watch
+        self._hello_timeout = self.console.reactor.callLater(self.HELLO_WAIT, self.transport.abortConnection)
 
     def lineReceived(self, line):
+        if self.expected is None:
+            return
         try:
             message = json.loads(line.decode("utf-8"))
             if not isinstance(message, dict):
@@ -617,42 +722,43 @@ class _WatcherLink(LineReceiver):
             self.watch.sample_received(message["topic"], str(message.get("type"))[:256], message["sample"])
 
     def _hello(self, message):
-        if self._hello_timeout.active():
-            self._hello_timeout.cancel()
-        watch = self.console.watches.get(str(message.get("name")))
-        if watch is None or watch.stopping or not secrets.compare_digest(str(message.get("key")), watch.key):
-            log.warning("console: a loopback connection without a valid watcher key was closed")
+        self._cancel_hello_timeout()
+        watch = self.expected
+        if watch.stopping or message.get("name") != watch.ss_name or \
+                not secrets.compare_digest(str(message.get("key")), watch.key):
+            self.console.notes.warning("console: closed the connection of the watcher of %s: its hello does not "
+                                       "carry its name and key", watch.ss_name)
             self.transport.loseConnection()
             return
         self.watch = watch
         watch.linked(self)
 
+    def _cancel_hello_timeout(self):
+        if self._hello_timeout is not None and self._hello_timeout.active():
+            self._hello_timeout.cancel()
+        self._hello_timeout = None
+
     def lineLengthExceeded(self, line):
         self.transport.loseConnection()
 
     def connectionLost(self, reason=protocol.connectionDone):
-        self.factory.open -= 1
-        if self._hello_timeout.active():
-            self._hello_timeout.cancel()
+        self._cancel_hello_timeout()
         if self.watch is not None and self.watch.link is self:
             self.watch.link = None
 
 
 class _WatcherFactory(protocol.Factory):
-    """The loopback listener for watcher nodes: at most ``MAX_WATCHES * 2`` connections at once."""
+    """The watchers' Unix socket: every connection is a ``_WatcherLink``, which keeps it only for a watcher's own
+    process (so at most one per watched space, ``MAX_WATCHES``)."""
 
     noisy = False
 
     def __init__(self, console):
         self.console = console
-        self.open = 0
 
     def buildProtocol(self, addr):
-        if self.open >= MAX_WATCHES * 2:
-            return None
         link = _WatcherLink(self.console)
         link.factory = self
-        self.open += 1
         return link
 
 
@@ -661,7 +767,7 @@ class _WatcherFactory(protocol.Factory):
 def _json_error(request, status, reason):
     request.setResponseCode(status)
     request.setHeader(b"Content-Type", b"application/json")
-    return json.dumps({"result": "ERROR", "reason": reason}, sort_keys=True).encode("utf-8")
+    return strict_dumps({"result": "ERROR", "reason": reason}, sort_keys=True).encode("utf-8")
 
 
 def _one_arg(request, name):
@@ -716,16 +822,17 @@ class ConsoleResource(resource.Resource):
                 return _json_error(request, 405, f"{path} takes GET only")
             found = self.files.get(name)
             if found is None:
-                return _json_error(request, 404, f"there is no console file {path!r}")
+                return _json_error(request, 404, f"there is no console file {shown(path, 100)}")
             request.setHeader(b"Content-Type", found[1])
             request.setHeader(b"Cache-Control", b"no-cache")
             return found[0]
         if method != "GET":
             request.setHeader(b"Allow", b"GET")
             return _json_error(request, 405, f"{path} takes GET only")
-        if self.console.full():
-            return _json_error(request, 503, f"the console already serves {self.console.max_clients} streams; "
-                                             f"try again later")
+        refusal = self.console.refusal(request)
+        if refusal is not None:
+            request.setHeader(b"Retry-After", b"5")
+            return _json_error(request, 503, refusal)
         try:
             if rest == "api/events":
                 detail = _one_arg(request, "ss_name")
@@ -749,7 +856,7 @@ class ConsoleResource(resource.Resource):
                 return server.NOT_DONE_YET
         except CommandError as exc:
             return _json_error(request, exc.status, str(exc))
-        return _json_error(request, 404, f"unknown console call {path!r}")
+        return _json_error(request, 404, f"unknown console call {shown(path, 100)}")
 
 
 # -- topic watching: the watcher node (a child process; the only place rospy is imported) -------------------
@@ -778,13 +885,13 @@ def sample_of(type_name, msg):
 
 
 def watch_main(argv):
-    """The watcher node: connect to the agent, subscribe to what it asks, send topics and samples."""
-    import socket
+    """The watcher node: connect to the agent, subscribe to what it asks, send topics and samples (strict JSON: a
+    NaN or infinite number as the string "NaN", "Infinity" or "-Infinity")."""
     import signal
     import threading
 
     parser = argparse.ArgumentParser(prog="rcmp_console watch")
-    parser.add_argument("--port", type=int, required=True)
+    parser.add_argument("--socket", required=True)
     parser.add_argument("--name", required=True)
     args = parser.parse_args(argv)
     key = os.environ.pop("RCMP_CONSOLE_KEY", "")
@@ -792,13 +899,15 @@ def watch_main(argv):
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
 
-    sock = socket.create_connection(("127.0.0.1", args.port), timeout=10)
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    sock.settimeout(10)
+    sock.connect(args.socket)
     sock.settimeout(None)
     out = sock.makefile("wb")
     lock = threading.Lock()
 
     def send(message):
-        data = json.dumps(message, separators=(",", ":")).encode() + b"\n"
+        data = strict_dumps(message, separators=(",", ":")).encode() + b"\n"
         with lock:
             out.write(data)
             out.flush()
@@ -881,7 +990,7 @@ def watch_main(argv):
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] != ["watch"]:
-        sys.stderr.write("usage: python3 -m rcm_platform.rcmp_console watch --port PORT --name SS_NAME\n")
+        sys.stderr.write("usage: python3 -m rcm_platform.rcmp_console watch --socket PATH --name SS_NAME\n")
         return 2
     return watch_main(argv[1:])
 

@@ -26,6 +26,7 @@ from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
 from rcm_platform.rcmp_config import master_address_from
+from rcm_platform.rcmp_log_guard import shown
 from rcm_platform.rcmp_service_command import describe, describe_waiting
 
 log = logging.getLogger("rcmp.event")
@@ -41,7 +42,6 @@ RETRY_JITTER = 1.0               # random seconds added to each wait, so that a 
 TAILS_TIMEOUT = 5.0               # seconds the master waits for the tails of a robot's item logs (the console)
 MAX_TAIL_LINES = 50              # lines of each item's log an item_tails answer holds at most
 MAX_TAIL_CHARS = 8192            # characters of each tail, the last ones kept
-LOGGED_TEXT = 200                # characters of a peer's free text (reasons) that go into the log
 REFUSAL_QUIET = 3600.0           # seconds during which the same agent refused for the same reason is not logged again
 MAX_REFUSALS_REMEMBERED = 1024   # (code, name, address) kept for that
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
@@ -69,12 +69,6 @@ MAX_SERVICE_SPACES = 100         # a server VM's max_service_spaces when its hel
 def default_max_starting_spaces():
     """Service spaces built at once unless ``max_starting_spaces`` says otherwise: two per core, at least 2."""
     return max(2, 2 * (os.cpu_count() or 1))
-
-
-def _short(text, limit=LOGGED_TEXT):
-    """A peer's free text, cut to ``limit`` characters for the log."""
-    text = str(text)
-    return text if len(text) <= limit else text[:limit] + f"... ({len(text)} characters)"
 
 
 def _type_names(types):
@@ -403,13 +397,13 @@ class MasterAgent(service.Service):
                 not session.robot and body["ss_name"] in self.spaces.spaces_of(session.name))
             if not hosts:
                 raise ic.Refused(f"{session.what} {session.name} cannot report items "
-                                 f"of service space {body['ss_name']!r}", code="bad_request")
+                                 f"of service space {shown(body['ss_name'], 80)}", code="bad_request")
             self.spaces.item_exited(body["ss_name"], body["report"])
             return {}
         if op == "bye":
-            log.info("%s %s is leaving: %s", session.what, session.name, _short(body["reason"]))
+            log.info("%s %s is leaving: %s", session.what, session.name, shown(body["reason"]))
             peer.info["said_bye"] = True
-            self.reactor.callLater(0, peer.close, f"robot said bye: {_short(body['reason'])}")
+            self.reactor.callLater(0, peer.close, f"robot said bye: {shown(body['reason'])}")
             return {}
         raise ic.Refused(f"the master agent does not serve op {op!r}", code="unknown_op")
 
@@ -424,7 +418,7 @@ class MasterAgent(service.Service):
         if peer.info.get("hello_pending"):     # being answered: look again later
             peer.info["hello_call"] = self.reactor.callLater(HELLO_WAIT, self._hello_overdue, peer)
             return
-        log.warning("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_WAIT)
+        self._log_refusal("closing the connection from %s: no hello within %.0f s", peer.remote, HELLO_WAIT)
         peer.abort("no hello in time")
 
     def peer_lost(self, peer, why):
@@ -839,7 +833,7 @@ class RobotAgent(service.Service):
                 hello["max_service_spaces"] = self.config.max_service_spaces
             answer = yield peer.request("hello", hello, timeout=HELLO_TIMEOUT)
         except ic.RemoteError as exc:
-            self._problem("master %s refused hello: %s", master, exc.reason)
+            self._problem("master %s refused hello: %s", master, shown(exc.reason))
             peer.close("hello refused")
             return
         except Exception as exc:
@@ -901,16 +895,17 @@ class RobotAgent(service.Service):
         if not self.accepted and op != "disconnect":
             raise ic.Refused(f"{op} before the master accepted hello", code="no_session")
         if op == "start_items":
-            log.info("master asks to start %d item(s) of service space %s", len(body["items"]), body["ss_name"])
+            log.info("master asks to start %d item(s) of service space %s", len(body["items"]),
+                     shown(body["ss_name"], 80))
             return self.runner.start_items(body["ss_name"], body["ros_master_uri"], body["items"],
                                            body["start_ros_master_port"])
         if op == "stop_items":
-            log.info("master asks to stop the items of service space %s", body["ss_name"])
+            log.info("master asks to stop the items of service space %s", shown(body["ss_name"], 80))
             return self.runner.stop_items(body["ss_name"]).addCallback(lambda _: {})
         if op == "item_tails":
             return {"tails": self._item_tails(body["ss_name"], body["lines"])}
         if op == "disconnect":
-            log.warning("the master disconnects this robot: %s", _short(body["reason"]))
+            log.warning("the master disconnects this robot: %s", shown(body["reason"]))
             self._told_to_go = True
             return {}
         raise ic.Refused(f"the robot agent does not serve op {op!r}", code="unknown_op")

@@ -18,8 +18,13 @@ Also owns who may call it (CONTRACTS §10, docs/SECURITY.md):
 - the listener: HTTP or, with (ext) ``rdapi_tls_cert`` / ``rdapi_tls_key``, HTTPS through Twisted's SSL endpoint;
   at most ``max_connections`` connections (``max_per_address`` from one address; counted by
   ``rcmp_inter_communication.ConnectionCaps``, as the agent port's), a 503 to the rest; idle
-  connections closed after ``idle_timeout`` and a request whose headers and body take longer than
-  ``request_deadline`` dropped, so slow clients cannot hold it.
+  connections closed after ``idle_timeout``, a request whose headers and body take longer than
+  ``request_deadline`` dropped, and a keep-alive connection closed after its current answer once it is
+  ``connection_lifetime`` seconds old, so slow or trickling clients cannot hold a slot.
+
+What a client sends reaches the log only through ``rcmp_log_guard``: paths, methods, query keys and the error
+sentences built from them are cut (``shown``), and the lines of answered errors, which anyone can cause, go
+through the site's ``Budget``. Every answer is strict JSON (``strict_dumps``: no bare NaN or Infinity).
 
 And what it tells about itself: ``/metrics`` (a read route like the others, given a ``metrics`` object by
 ``rcmp_node``: ``rcmp_metrics`` renders it) and ``Rdapi.request_observers``, told of every finished request by its
@@ -39,7 +44,8 @@ from twisted.application import service
 from twisted.internet import defer, endpoints, protocol, task, threads
 from twisted.web import http, resource, server
 
-from .rcmp_inter_communication import ConnectionCaps, json_depth
+from .rcmp_inter_communication import ConnectionCaps, json_depth, strict_dumps
+from .rcmp_log_guard import Budget, shown
 from .rcmp_command import (BadRequest, CommandError, Forbidden, MethodNotAllowed, NotFound, TooLarge,
                            Unauthorized, UnsupportedMediaType)
 
@@ -72,6 +78,7 @@ MAX_CONNECTIONS = 256       # open RDAPI connections at once (the agent's fd lim
 MAX_PER_ADDRESS = 32        # of which from one source address
 IDLE_TIMEOUT = 60.0         # seconds a keep-alive connection may sit idle
 REQUEST_DEADLINE = 15.0     # seconds from a request's first line to its last body byte
+CONNECTION_LIFETIME = 120.0  # seconds a keep-alive connection is kept (then closed after its current answer)
 
 METHOD_LABELS = ("GET", "HEAD", "POST", "OPTIONS")   # request_observers get these, "other" for any other method
 UNKNOWN_ROUTE = "other"     # request_observers' route for a path that is no route
@@ -222,8 +229,10 @@ class Rdapi(resource.Resource):
 
     isLeaf = True
 
-    def __init__(self, platform, service, tokens=None, allowed_origins=(), console=None, metrics=None):
+    def __init__(self, platform, service, tokens=None, allowed_origins=(), console=None, metrics=None,
+                 clock=time.monotonic):
         super().__init__()
+        self.errors_log = Budget(log, "RDAPI error lines", clock=clock)   # anyone can cause them
         self.platform = platform
         self.service = service
         self.tokens = tokens
@@ -346,15 +355,15 @@ class Rdapi(resource.Resource):
             else:
                 route = self.routes.get(path)
             if route is None:
-                raise NotFound(f"unknown path {path!r}: see the RDAPI documentation for the calls")
+                raise NotFound(f"unknown path {shown(path, 100)}: see the RDAPI documentation for the calls")
             if method == "OPTIONS":
                 request.setHeader(b"Allow", ", ".join(route.allowed).encode())
                 request.setResponseCode(204)
                 return b""
             handler_method = "GET" if method == "HEAD" else method
             if handler_method not in route.handlers:
-                raise MethodNotAllowed(f"{path} does not take {method!r}; use {' or '.join(route.allowed)}",
-                                       route.allowed)
+                raise MethodNotAllowed(f"{path} does not take {shown(method, 20)}; use "
+                                       f"{' or '.join(route.allowed)}", route.allowed)
             if self.tokens is None or self.is_public(path, method):
                 return self._dispatch(request, route, method, path)
             if not self.tokens.required:
@@ -395,7 +404,7 @@ class Rdapi(resource.Resource):
         if handler_method == "POST":
             if not self.origin_may_write(request):
                 origin = request.getHeader(b"origin").decode("latin-1")
-                raise Forbidden(f"pages from {origin[:100]!r} may not write to the RDAPI (only its own origin "
+                raise Forbidden(f"pages from {shown(origin, 100)} may not write to the RDAPI (only its own origin "
                                 f"and the allowed_origins of the master's .init.cfg may)")
         if request.too_large:
             raise TooLarge(f"the request body is larger than {request.max_body} bytes")
@@ -422,7 +431,7 @@ class Rdapi(resource.Resource):
                 request.finish()
                 return
             if method == "POST":
-                log.info("RDAPI %s %s: OK: %s", method, path, reason)
+                log.info("RDAPI %s %s: OK: %s", method, path, shown(reason, 300))
                 self._write(request, 200, {"result": "OK", "reason": reason})
                 return
             # reads: the commands hand out the same object while it is current; encode it once
@@ -440,7 +449,7 @@ class Rdapi(resource.Resource):
             if failure.check(CommandError):
                 self._answer_error(request, failure.value, finish=True)
             else:
-                log.error("RDAPI %s %s: unexpected error", method, path,
+                log.error("RDAPI %s %s: unexpected error", shown(method, 20), shown(path),
                           exc_info=(failure.type, failure.value, failure.getTracebackObject()))
                 self._write(request, 500, {"result": "ERROR",
                                            "reason": "internal error of the RCM master; see its log (rcmp.log)"})
@@ -453,9 +462,8 @@ class Rdapi(resource.Resource):
         value = request.getHeader(b"content-type")
         media = value.decode("latin-1").split(";", 1)[0].strip().lower() if value else ""
         if media != "application/json":
-            shown = f"{media[:60]!r}" if media else "none"
             raise UnsupportedMediaType(f"the request body must be sent with 'Content-Type: application/json' "
-                                       f"(this request has {shown})")
+                                       f"(this request has {shown(media, 60) if media else 'none'})")
 
     @staticmethod
     def _query(request, route):
@@ -468,7 +476,7 @@ class Rdapi(resource.Resource):
                 raise BadRequest("the query string is not valid UTF-8") from None
             if key not in route.query:
                 expected = ", ".join(route.query) or "none"
-                raise BadRequest(f"unknown query parameter {key!r} (expected: {expected})")
+                raise BadRequest(f"unknown query parameter {shown(key, 60)} (expected: {expected})")
             if len(decoded) != 1:
                 raise BadRequest(f"the query parameter {key!r} is given {len(decoded)} times")
             query[key] = decoded[0]
@@ -509,8 +517,8 @@ class Rdapi(resource.Resource):
             request.setHeader(b"WWW-Authenticate", b'Bearer realm="rcm-platform"')
         elif isinstance(exc, Forbidden) and "--role admin" in str(exc):
             request.setHeader(b"WWW-Authenticate", b'Bearer realm="rcm-platform", error="insufficient_scope"')
-        log.info("RDAPI %s %s: %d %s", request.method.decode("latin-1"), request.path.decode("latin-1"),
-                 status, exc)
+        self.errors_log.info("RDAPI %s %s: %d %s", shown(request.method.decode("latin-1"), 20),
+                             shown(request.path.decode("latin-1")), status, shown(str(exc), 300))
         payload = {"result": "ERROR", "reason": str(exc)}
         if finish:
             self._write(request, status, payload)
@@ -519,7 +527,7 @@ class Rdapi(resource.Resource):
 
     @staticmethod
     def _dumps(payload):
-        return json.dumps(payload, sort_keys=True).encode("utf-8")
+        return strict_dumps(payload, sort_keys=True).encode("utf-8")
 
     def _encode(self, request, status, payload):
         request.setResponseCode(status)
@@ -539,16 +547,22 @@ class Rdapi(resource.Resource):
 
 
 class RdapiChannel(http.HTTPChannel):
-    """An HTTP connection of the RDAPI: counted by its site, and dropped when one request takes too long.
+    """An HTTP connection of the RDAPI: counted by its site, dropped when one request takes too long, and closed
+    once it is old.
 
     The site's idle timeout (reset by every byte) closes silent connections; ``request_deadline`` bounds the time
     from a request's first line (or the connection's opening) to its last body byte, which a client trickling
-    bytes would otherwise stretch for ever.
+    bytes would otherwise stretch for ever; ``connection_lifetime`` bounds the connection itself, which a client
+    sending one small request now and then would otherwise keep for ever: when it is reached, an idle connection
+    is closed and a busy one after its current answer (``Connection: close``). A console event stream is a
+    request that lasts: its own deadlines are the console's.
     """
 
     def connectionMade(self):
         super().connectionMade()
         self._deadline = None
+        self.expired = False
+        self._lifetime = self.callLater(self.site.connection_lifetime, self._expire)
         self._arm()
 
     def _arm(self):
@@ -565,6 +579,24 @@ class RdapiChannel(http.HTTPChannel):
         self.site.slow_dropped += 1
         self.transport.abortConnection()
 
+    def _expire(self):
+        self._lifetime = None
+        self.expired = True
+        self.site.expired += 1
+        if not self.requests:
+            self.transport.loseConnection()       # between two requests: nothing is lost
+            return
+        self.persistent = False                   # closed once the answer in progress is written
+        for request in self.requests:
+            if not request.startedWriting:
+                request.setHeader(b"Connection", b"close")
+
+    def checkPersistence(self, request, version):
+        if self.expired:
+            request.responseHeaders.setRawHeaders(b"connection", [b"close"])
+            return False
+        return super().checkPersistence(request, version)
+
     def lineReceived(self, line):
         self._arm()
         super().lineReceived(line)
@@ -575,6 +607,9 @@ class RdapiChannel(http.HTTPChannel):
 
     def connectionLost(self, reason):
         self._disarm()
+        if self._lifetime is not None and self._lifetime.active():
+            self._lifetime.cancel()
+        self._lifetime = None
         self.site.channel_closed(self)
         super().connectionLost(reason)
 
@@ -586,7 +621,7 @@ class _Busy(protocol.Protocol):
         self.reason = reason
 
     def connectionMade(self):
-        body = json.dumps({"result": "ERROR", "reason": self.reason}, sort_keys=True).encode()
+        body = strict_dumps({"result": "ERROR", "reason": self.reason}, sort_keys=True).encode()
         self.transport.write(b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
                              b"Retry-After: 5\r\nConnection: close\r\nContent-Length: "
                              + str(len(body)).encode() + b"\r\n\r\n" + body)
@@ -601,12 +636,15 @@ class RdapiSite(server.Site):
     protocol = RdapiChannel
 
     def __init__(self, resource, max_connections=MAX_CONNECTIONS, max_per_address=MAX_PER_ADDRESS,
-                 idle_timeout=IDLE_TIMEOUT, request_deadline=REQUEST_DEADLINE, **kwargs):
+                 idle_timeout=IDLE_TIMEOUT, request_deadline=REQUEST_DEADLINE,
+                 connection_lifetime=CONNECTION_LIFETIME, **kwargs):
         super().__init__(resource, timeout=idle_timeout, **kwargs)
         self.caps = ConnectionCaps(max_connections, max_per_address)
         self.request_deadline = request_deadline
+        self.connection_lifetime = connection_lifetime
         self.refused = 0              # connections answered 503 for being over a cap
         self.slow_dropped = 0         # connections dropped by the request deadline
+        self.expired = 0              # connections closed for their age
         self._warned = False
 
     @property
@@ -649,8 +687,8 @@ def make_site(platform, service, max_body=MAX_BODY, tokens=None, allowed_origins
     ``tokens``: a ``Tokens`` or None (open); ``console``: the ``rcmp_console.ConsoleResource`` served under
     /console/ (its static files public, its API behind the tokens like any read); ``metrics``: what serves
     ``GET /metrics`` (``rcmp_metrics``), None for no such route; ``limits``: ``max_connections``,
-    ``max_per_address``, ``idle_timeout``, ``request_deadline`` of ``RdapiSite``. The ``Rdapi`` is
-    ``site.resource``.
+    ``max_per_address``, ``idle_timeout``, ``request_deadline``, ``connection_lifetime`` of ``RdapiSite``. The
+    ``Rdapi`` is ``site.resource``.
     """
     site = RdapiSite(Rdapi(platform, service, tokens=tokens, allowed_origins=allowed_origins,
                            console=console, metrics=metrics), **limits)

@@ -17,7 +17,7 @@ Rules (``docs/PROTOCOL.md`` is the reference):
   most ``MAX_BYTES_BEFORE_ADMISSION`` bytes in all, so a stranger costs a few KB at most;
 - a listener holds at most ``max_connections`` connections, and at most ``max_per_address`` from one source
   address; a connection over a cap is closed as soon as it is accepted, before anything is read. The counting
-  is ``ConnectionCaps``, which the RDAPI's listener uses too;
+  is ``ConnectionCaps``, which the RDAPI's listener and the console's streams use too;
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
@@ -28,11 +28,15 @@ it a *handler* with ``request_received(peer, op, body) -> value | Deferred`` (ra
 answer) and, optionally, ``peer_connected(peer)`` and ``peer_lost(peer, reason)``.
 
 Also the agent's other wire: ``DriverLink``, its end of the connection to a service space's ``rcm_driver``
-(CONTRACTS §4: one JSON object per line, ``{"rcm_d_cmd", "r_name"}`` both ways), and ``connect_driver``.
+(CONTRACTS §4: one JSON object per line, ``{"rcm_d_cmd", "r_name"}`` both ways, and the one-time ``key`` the
+agent gave that rcm_driver), and ``connect_driver``; and the JSON every listener of the agent sends
+(``strict_dumps``: never a bare ``NaN`` or ``Infinity``, which strict parsers such as a browser's ``JSON.parse``
+refuse; ``json_safe`` writes such numbers as the strings ``"NaN"``, ``"Infinity"``, ``"-Infinity"``).
 """
 
 import json
 import logging
+import math
 import random
 import re
 import resource
@@ -41,6 +45,8 @@ from twisted.application.internet import backoffPolicy
 from twisted.internet import defer, endpoints, protocol
 from twisted.protocols.basic import Int32StringReceiver, LineReceiver
 from twisted.python import failure
+
+from .rcmp_log_guard import Budget, shown
 
 log = logging.getLogger("rcmp.ic")
 
@@ -87,9 +93,33 @@ class PeerGone(Exception):
     """The connection closed before our request was answered."""
 
 
+NON_FINITE = {"nan": "NaN", "inf": "Infinity", "-inf": "-Infinity"}   # how JSON out shows such floats
+
+
+def json_safe(value):
+    """``value`` (JSON-like: dicts, lists, tuples, scalars) with every float JSON cannot carry (NaN, Infinity,
+    -Infinity) written as the strings ``"NaN"``, ``"Infinity"``, ``"-Infinity"`` (as FIROS writes them), keys too."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else NON_FINITE[repr(value)]
+    if isinstance(value, dict):
+        return {json_safe(k) if isinstance(k, float) else k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def strict_dumps(value, **kwargs):
+    """``json.dumps(value, allow_nan=False, **kwargs)`` of ``json_safe(value)``: what any listener of the agent
+    sends. Values without such floats (nearly all) are encoded once, as they are."""
+    try:
+        return json.dumps(value, allow_nan=False, **kwargs)
+    except ValueError:
+        return json.dumps(json_safe(value), allow_nan=False, **kwargs)
+
+
 def encode_frame(message):
     """The JSON bytes of one message (without the length prefix); ProtocolError when over MAX_FRAME."""
-    data = json.dumps(message, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    data = strict_dumps(message, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
     if len(data) > MAX_FRAME:
         raise ProtocolError(f"a {message.get('op')!r} frame of {len(data)} bytes is over the "
                             f"{MAX_FRAME}-byte limit")
@@ -345,8 +375,9 @@ class PeerFactory(protocol.Factory):
 
 class ConnectionCaps:
     """The caps of one listener on its open connections: in all (``max_connections``) and from one source address
-    (``max_per_address``). The agent port (``ListeningFactory``) and the RDAPI's listener
-    (``rcmp_ext_connector.RdapiSite``) both count their connections here; each words its own refusal."""
+    (``max_per_address``). The agent port (``ListeningFactory``), the RDAPI's listener
+    (``rcmp_ext_connector.RdapiSite``) and the console's streams (``rcmp_console.Console``) count their connections
+    here; each words its own refusal."""
 
     def __init__(self, max_connections, max_per_address):
         self.max_connections = max_connections
@@ -390,24 +421,17 @@ class ListeningFactory(PeerFactory):
     """Builds a not-yet-admitted Peer per accepted connection, within the listener's caps.
 
     A connection over ``max_connections`` in all or ``max_per_address`` from its source address is refused
-    (``buildProtocol`` returns None: Twisted closes it before reading anything). Refusals are logged at most
-    once every ``LOG_EVERY`` seconds, with how many there were; warnings about connections not admitted yet
-    (protocol errors, limits), at most ``WARNINGS_PER_PERIOD`` every ``LOG_EVERY`` seconds, then one line
-    saying how many were left out.
+    (``buildProtocol`` returns None: Twisted closes it before reading anything). Both the refusals (one line per
+    window, then their count) and the warnings about connections not admitted yet (protocol errors, limits,
+    refused hellos: ``warn_limited``) go into the log through ``rcmp_log_guard.Budget``s.
     """
-
-    LOG_EVERY = 10.0
-    WARNINGS_PER_PERIOD = 10
 
     def __init__(self, handler, reactor, max_connections=None, max_per_address=None):
         super().__init__(handler, reactor)
         self.caps = ConnectionCaps(max_connections or default_max_connections(), max_per_address or MAX_PER_ADDRESS)
-        self.refused = 0             # connections refused since the last log line
         self.refused_total = 0
-        self._logged_at = None
-        self._warn_period = None
-        self._warned = 0
-        self.warnings_left_out = 0
+        self.refusals = Budget(log, "refused connections on the agent port", clock=reactor.seconds, burst=1)
+        self.warnings = Budget(log, "warnings about connections not admitted", clock=reactor.seconds)
 
     @property
     def peers(self):
@@ -435,27 +459,11 @@ class ListeningFactory(PeerFactory):
         self.caps.closed(peer)
 
     def warn_limited(self, message, *args):
-        now = self.reactor.seconds()
-        if self._warn_period is None or now - self._warn_period >= self.LOG_EVERY:
-            if self.warnings_left_out:
-                log.warning("%d more warnings about connections not admitted were left out of the log in the "
-                            "last %.0f s", self.warnings_left_out, self.LOG_EVERY)
-            self._warn_period, self._warned, self.warnings_left_out = now, 0, 0
-        if self._warned < self.WARNINGS_PER_PERIOD:
-            self._warned += 1
-            log.warning(message, *args)
-        else:
-            self.warnings_left_out += 1
+        self.warnings.warning(message, *args)
 
     def _refuse(self, why, host):
-        self.refused += 1
         self.refused_total += 1
-        now = self.reactor.seconds()
-        if self._logged_at is None or now - self._logged_at >= self.LOG_EVERY:
-            log.warning("refusing connections on the agent port (%d since the last report; this one from %s): %s",
-                        self.refused, host, why)
-            self.refused = 0
-            self._logged_at = now
+        self.refusals.warning("refusing connections on the agent port (this one from %s): %s", host, why)
 
 
 def listen(reactor, address, port, handler, max_connections=None, max_per_address=None):
@@ -501,29 +509,42 @@ class Backoff:
 class DriverLink(LineReceiver):
     """The agent's end of the rcm_driver connection (CONTRACTS §4): one JSON object per line.
 
-    ``on_message(cmd, r_name)`` is called for each well-formed line the driver sends (garbage is logged and
-    skipped); ``on_lost(link)`` when the connection ends. ``send(cmd, r_name)`` writes one line.
+    ``on_message(cmd, r_name)`` is called for each well-formed line the driver sends (garbage is logged, through
+    a ``Budget``, and skipped); ``on_lost(link)`` when the connection ends. ``send(cmd, r_name)`` writes one line,
+    carrying ``key`` (the one-time key the agent gave the rcm_driver it started) when there is one.
     """
 
     delimiter = b"\n"
     MAX_LENGTH = 65536
 
-    def __init__(self, name, on_message, on_lost=None):
+    def __init__(self, name, on_message, on_lost=None, key=None):
         self.name = name            # whose link this is, for the log (the service space)
         self.on_message = on_message
         self.on_lost = on_lost
+        self.key = key
+        self.garbage = Budget(log, f"lines of garbage from the rcm_driver of service space {name}")
 
     def send(self, cmd, r_name):
-        self.sendLine(json.dumps({"rcm_d_cmd": cmd, "r_name": r_name}).encode())
+        line = {"rcm_d_cmd": cmd, "r_name": r_name}
+        if self.key is not None:
+            line["key"] = self.key
+        self.sendLine(strict_dumps(line).encode())
 
     def lineReceived(self, line):
         try:
             message = json.loads(line.decode("utf-8"))
             cmd, r_name = message["rcm_d_cmd"], message["r_name"]
+            if not isinstance(cmd, str) or not isinstance(r_name, str):
+                raise TypeError("not strings")
         except (ValueError, KeyError, TypeError):
-            log.warning("service space %s: rcm_driver sent garbage: %r", self.name, line[:200])
+            self.garbage.warning("service space %s: rcm_driver sent garbage: %s", self.name, shown(line))
             return
         self.on_message(cmd, r_name)
+
+    def lineLengthExceeded(self, line):
+        self.garbage.warning("service space %s: rcm_driver sent a line over %d bytes; closing", self.name,
+                             self.MAX_LENGTH)
+        self.transport.loseConnection()
 
     def connectionLost(self, reason=protocol.connectionDone):
         if self.on_lost is not None:

@@ -33,7 +33,7 @@ What a service item is and how it becomes a process (command line, environment, 
 imports neither ``rcmp_event`` nor ``rcmp_node``: ``rcmp_node`` builds the runtime and hands it (and the function
 giving the platform address) to the agents.
 
-About 1,070 lines, more than the 900 or so of the other modules, because it is one runtime that both sides run:
+About 1,120 lines, more than the 900 or so of the other modules, because it is one runtime that both sides run:
 the master's manager and the ``ItemRunner`` share the start sequence, the ROS master, the items' start and
 registration, the special items' ports and rcm_driver link, and the stopping (``_SpaceHost``); the parts that
 were jobs of their own have left it (the process table: ``rcmp_process``; what an item is: ``rcmp_service_item``).
@@ -52,9 +52,10 @@ from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform.rcmp_command import CommandError
-from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, check_transition
-from rcm_platform.rcmp_service_item import (NodeExecutables, ServiceItem, child_env, graph_name, items_of_logic,
-                                            launcher_nodes, launcher_nodes_as)
+from rcm_platform.rcmp_log_guard import Budget, shown
+from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, STATES, check_transition
+from rcm_platform.rcmp_service_item import (ITEM_FAILURES, NodeExecutables, ServiceItem, child_env, graph_name,
+                                            items_of_logic, launcher_nodes, launcher_nodes_as)
 
 # one "Starting factory" log line per XML-RPC call to a ROS master is noise (Twisted 18.9 names it _QueryFactory)
 (getattr(xmlrpc, "QueryFactory", None) or xmlrpc._QueryFactory).noisy = False
@@ -111,12 +112,39 @@ def _tcp_port_free(port, host=""):
 
 HERE = object()   # this agent, as a place where a part of a service space runs (beside its RemoteAgents)
 
+REPORTED_TEXT = 4000     # characters of an item's error the master keeps from a robot's (or server's) report
+REPORTED_NAME = 256      # characters of each name in it
+REPORTED_NODES = 1000    # nodes of one launcher it keeps
+
+
+def received_report(report):
+    """What the master keeps of an item report a robot or server VM sent (docs/DESIGN.md's fields): strings cut
+    (names to ``REPORTED_NAME`` characters, the error to ``REPORTED_TEXT``), a state of the process table's set
+    (``failed`` otherwise), at most ``REPORTED_NODES`` nodes. A peer's report is never kept or shown whole."""
+    def text(value, limit=REPORTED_NAME):
+        return value[:limit] if isinstance(value, str) else None
+    kept = {field: text(report.get(field)) for field in ("kind", "name", "package", "type_or_file", "side",
+                                                          "i_name")}
+    kept["state"] = report.get("state") if report.get("state") in STATES else FAILED
+    kept["error"] = text(report.get("error"), REPORTED_TEXT)
+    if report.get("failure") is not None:   # why it failed: one word of the closed set, "other" for anything else
+        kept["failure"] = report["failure"] if report["failure"] in ITEM_FAILURES else "other"
+    nodes = report.get("nodes")
+    kept["nodes"] = [text(n) for n in nodes[:REPORTED_NODES] if isinstance(n, str)] if isinstance(nodes, list) else []
+    types = report.get("node_types")
+    types = list(types.items())[:REPORTED_NODES] if isinstance(types, dict) else []
+    kept["node_types"] = {text(node): [text(part) or "" for part in pair[:2]] for node, pair in types
+                          if isinstance(pair, list) and len(pair) == 2}
+    return kept
+
 
 def _items_on(parts, host):
     """The items of ``parts`` (``[(host, items)]``) that run on ``host``."""
     return [item for where, items in parts if where is host for item in items]
 
 
+DRIVER_EVENTS_KEPT = 50  # rcm_driver's last events a space keeps for service_space/read
+DRIVER_RECONNECTS = 10   # times a space connects to its rcm_driver again after the connection closed
 RCM_DRIVER_PORT = 9998  # rcm_driver's default port (CONTRACTS §4); each further space takes the next free one
 _PORT_TAKEN = "is already in use"  # rosmaster's words when its XML-RPC port is taken ("port N is already in use")
 _REMOTE_MASTER_URI = re.compile(r"http://([0-9.]{7,15}):([0-9]{1,5})/?\Z")
@@ -177,10 +205,12 @@ class ServiceSpace:
         self.host = None            # master side: that server's RemoteAgent, None when it is this agent
         self.public_ip = None       # master side: the hosting server's address for service_space/read
         self.driver_link = None
-        self.driver_events = []
+        self.driver_events = collections.deque(maxlen=DRIVER_EVENTS_KEPT)
         self.driver_waiters = []
         self.told = set()           # robot side: keys of the failures already reported
         self.teardown_waiters = None
+        self.notes = Budget(log, f"notes about service space {name}")   # robots report at will
+        self.driver_reconnects = 0
 
     def __repr__(self):
         return f"<ServiceSpace {self.name} {self.state}>"
@@ -508,11 +538,11 @@ class _SpaceHost:
             result = yield agent.start_items(space.name, space.ros_master_uri, [i.to_dict() for i in remote],
                                              start_ros_master_port=start_ros_master_port)
         except Exception as exc:
-            raise SpaceError(f"{what} {who} could not start its items: {exc}")
+            raise SpaceError(f"{what} {who} could not start its items: {shown(str(exc))}")
         if space.cancelled:
             return
-        if result.get("reason"):
-            raise SpaceError(f"{what} {who}: {result['reason']}")
+        if result.get("reason"):   # the agent's own words: at most LOGGED_TEXT characters of them, as any peer's
+            raise SpaceError(f"{what} {who}: {shown(str(result['reason']))}")
         if start_ros_master_port is not None:
             answer = result.get("ros_master_uri")
             if not answer:
@@ -520,19 +550,21 @@ class _SpaceHost:
             address = getattr(agent, "address", None)
             space.ros_master_uri = remote_master_uri(answer, address)
             if space.ros_master_uri is None:
-                text = answer if isinstance(answer, str) else type(answer).__name__
-                shown = repr(text[:SHOWN_URI]) + ("..." if len(text) > SHOWN_URI else "")
-                raise SpaceError(f"{what} {who} answered that the space's ROS master is at {shown}, which is not on "
-                                 f"its own address: a {what}'s ROS master is accepted only at "
-                                 f"http://{address}:PORT/; nothing of the space was started against it")
-        if result.get("inbound_port"):
-            space.inbound_port = result["inbound_port"]
-        reports = {(r.get("kind"), r.get("name")): r for r in result.get("items") or []}
+                raise SpaceError(f"{what} {who} answered that the space's ROS master is at "
+                                 f"{shown(answer, SHOWN_URI)}, which is not on its own address: a {what}'s ROS "
+                                 f"master is accepted only at http://{address}:PORT/; nothing of the space was "
+                                 f"started against it")
+        inbound_port = result.get("inbound_port")
+        if isinstance(inbound_port, int) and not isinstance(inbound_port, bool) and 0 < inbound_port < 65536:
+            space.inbound_port = inbound_port
+        items = result.get("items")
+        reports = {(r["kind"], r["name"]): r for r in (received_report(r) for r in items if isinstance(r, dict))
+                   } if isinstance(items, list) else {}
         for item in remote:
             item.remote = reports.get((item.kind, item.name)) or {
                 **item.report(), "state": FAILED, "error": f"the {what} did not report this item",
                 "failure": "not_reported"}
-            item.remote.setdefault("i_name", item.i_name)
+            item.remote["i_name"] = item.remote.get("i_name") or item.i_name
             item.nodes = list(item.remote.get("nodes") or [])
             item.node_types = {n: tuple(t) for n, t in (item.remote.get("node_types") or {}).items()}
 
@@ -610,6 +642,8 @@ class _SpaceHost:
         except CommandError as exc:  # params that do not split (validation lets none through)
             item.fail(f"cannot split the params {item.params!r}: {exc}", "params")
             return
+        if item.special is not None:
+            env = item.special.environment(item, env)
         item.process = self.table.spawn(space.key(item.kind, item.name), argv, env, f"{space.name}-{item.name}",
                                         user=self.run_as)
         item.process.listeners.append(lambda mp, old, new: self._item_changed(space, item, new))
@@ -635,7 +669,7 @@ class _SpaceHost:
             if space.cancelled or item.state not in (STARTING, RUNNING):
                 return None
             link = ic.DriverLink(space.name, lambda cmd, r_name: self._driver_said(space, cmd, r_name),
-                                 lambda lost: self._driver_lost(space, lost))
+                                 lambda lost: self._driver_lost(space, item, lost), key=item.driver_key)
             return ic.connect_driver(self.reactor, item.driver_port, link)
 
         def give_up(exc):
@@ -651,7 +685,7 @@ class _SpaceHost:
         return poll_until(self.reactor, attempt, 0.1, self.driver_timeout, give_up).addCallback(connected)
 
     def _driver_said(self, space, cmd, r_name):
-        log.info("service space %s: rcm_driver says %s %s", space.name, cmd, r_name)
+        log.info("service space %s: rcm_driver says %s %s", space.name, shown(cmd, 40), shown(r_name, 80))
         space.driver_events.append({"rcm_d_cmd": cmd, "r_name": r_name})
         waiters, space.driver_waiters = space.driver_waiters, []
         for wanted, d in waiters:
@@ -660,9 +694,20 @@ class _SpaceHost:
             else:
                 space.driver_waiters.append((wanted, d))
 
-    def _driver_lost(self, space, link):
-        if space.driver_link is link:
-            space.driver_link = None
+    def _driver_lost(self, space, item, link):
+        """The link to rcm_driver closed. Unless we closed it (``say_goodbye_to_driver``) or the space or the driver
+        is going, connect again and say r_connection again (rcm_driver closes a connection that has not shown its
+        key in time, which a busy agent or a flood of other local connections can make ours), at most
+        ``DRIVER_RECONNECTS`` times per space."""
+        if space.driver_link is not link:
+            return
+        space.driver_link = None
+        if space.cancelled or item.state not in (STARTING, RUNNING) or space.driver_reconnects >= DRIVER_RECONNECTS:
+            return
+        space.driver_reconnects += 1
+        space.notes.warning("service space %s: the connection to rcm_driver closed; connecting again", space.name)
+        self.connect_driver(space, item).addErrback(
+            lambda failure: space.notes.warning("service space %s: %s", space.name, failure.getErrorMessage()))
 
     def _items_stopping(self, space):
         """The special items' ``stopping`` hooks (rcm_driver: r_disconnection, e_removed awaited with FIROS)."""
@@ -932,22 +977,25 @@ class ServiceSpaceManager(_SpaceHost):
 
     def item_exited(self, ss_name, report):
         """The robot (or the server hosting the space) says an item (or, kind ``ros_master``, its ROS master)
-        of ``ss_name`` ended."""
+        of ``ss_name`` ended. Kept as ``received_report`` keeps it; logged through the space's ``Budget`` (a robot
+        may report as often as it likes)."""
         space = self.spaces.get(ss_name)
         if space is None or space.cancelled or not isinstance(report, dict):
             return
-        if report.get("kind") == "ros_master":
-            space.reason = f"the ROS master on {report.get('i_name')} ended: {report.get('error')}"
+        report = received_report(report)
+        if report["kind"] == "ros_master":
+            space.reason = f"the ROS master on {report['i_name']} ended: {report['error']}"
         else:
             for item in space.items:
-                if item.remote is not None and (item.kind, item.name) == (report.get("kind"), report.get("name")):
-                    item.remote = dict(report)
+                if item.remote is not None and (item.kind, item.name) == (report["kind"], report["name"]):
+                    item.remote = report
                     break
             else:
-                log.warning("service space %s: an unknown item was reported %r", ss_name, report)
+                space.notes.warning("service space %s: an unknown item was reported: %s %s", ss_name,
+                                          shown(report["kind"], 40), shown(report["name"], 80))
                 return
-        log.warning("service space %s: %s reports %s %s %s: %s", ss_name, report.get("i_name"), report.get("kind"),
-                    report.get("name"), report.get("state"), report.get("error"))
+        space.notes.warning("service space %s: %s reports %s %s %s: %s", ss_name, shown(report["i_name"], 80),
+                                  report["kind"], report["name"], report["state"], shown(report["error"]))
         self._pairing_may_have_changed(space)
 
     # -- teardown -------------------------------------------------------------------------------------------

@@ -33,6 +33,7 @@ import sys
 
 from .rcmp_config import (EXIT_FAILED, EXIT_MISSING, EXIT_OK, EXIT_STATUSES, EXIT_USAGE, ConfigError,
                           folder_problem, load_config, platform_address, rdapi_address)
+from .rcmp_log_guard import Budget, BudgetFilter
 
 PROG = "rcmp_n"
 DEFAULT_HOME = "/opt/rcm-platform"
@@ -44,7 +45,8 @@ log = logging.getLogger("rcm_platform")
 # -- logging ----------------------------------------------------------------------------------------------------
 
 def setup_logging(config, level=logging.INFO, to_stderr=True):
-    """Log to HOME/log/rcmp.log (rotating, 5 backups) and, in the foreground, to stderr. Twisted's log too."""
+    """Log to HOME/log/rcmp.log (rotating, 5 backups) and, in the foreground, to stderr. Twisted's log too, through a
+    ``rcmp_log_guard.Budget``: its lines about clients (timed out, broken) are ones any client can cause."""
     log_dir = os.path.join(config.home, "log")
     os.makedirs(log_dir, exist_ok=True)
     fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -62,6 +64,10 @@ def setup_logging(config, level=logging.INFO, to_stderr=True):
         root.addHandler(stream)
     root.setLevel(level)
     from twisted.logger import STDLibLogObserver, globalLogBeginner
+    twisted_log = logging.getLogger("twisted")
+    for old in [f for f in twisted_log.filters if isinstance(f, BudgetFilter)]:
+        twisted_log.removeFilter(old)
+    twisted_log.addFilter(BudgetFilter(Budget(twisted_log, "lines of Twisted's own log")))
     globalLogBeginner.beginLoggingTo([STDLibLogObserver(name="twisted")], redirectStandardIO=False)
 
 

@@ -13,7 +13,8 @@ A newcomer's question "where does a service item get its command line, environme
 - **its command line**: ``ServiceItem.argv`` (``node_argv``: ``rosrun PKG TYPE PARAMS __name:=NAME``;
   ``launcher_argv``: ``roslaunch --wait ... PKG FILE PARAMS``; params split by ``rcmp_command.split_params``, the
   only splitter, never a shell), changed by its special hooks when it is one of ``SPECIAL_ITEMS`` (FIROS gets
-  ``-P`` and one of the inbound open ports, rcm_driver its own ``port=N``), and ``ServiceItem.spawn_argv``: a
+  ``-P`` and one of the inbound open ports, rcm_driver its own ``port=N`` and, in its environment, the one-time
+  key it obeys the agent by), and ``ServiceItem.spawn_argv``: a
   node's ``rosrun PKG TYPE`` replaced by the file rosrun would run (``NodeExecutables``, roslaunch's own lookup:
   one exec instead of rosrun's bash, catkin_find and rospack, 0.2 CPU-seconds per node). What a launcher starts
   is read with roslaunch's own loader (``launcher_nodes``; ``launcher_nodes_as`` in a child running as the items'
@@ -38,6 +39,7 @@ import json
 import logging
 import os
 import pwd
+import secrets
 import shlex
 import signal
 import stat
@@ -219,6 +221,10 @@ class SpecialItem:
         """Words after the item's argv."""
         return []
 
+    def environment(self, item, env):
+        """The environment the item's process starts with (``env``: the space's)."""
+        return env
+
     def started(self, host, space, item):
         """After the space's items started (the item runs): a Deferred or None."""
 
@@ -242,12 +248,19 @@ class FirosItem(SpecialItem):
 
 class RcmDriverItem(SpecialItem):
     """rcm_driver: a free local ``port=N``, told ``r_connection`` once it runs and ``r_disconnection`` before
-    the space stops, over a TCP connection kept open (``rcmp_inter_communication.DriverLink``)."""
+    the space stops, over a TCP connection kept open (``rcmp_inter_communication.DriverLink``). It gets a one-time
+    key in its environment (``RCM_DRIVER_KEY``, never on its command line, which any local user can read), and
+    obeys only connections whose first line carries it: no other local user can speak for the agent."""
 
     name = "rcm_driver"
+    KEY_VARIABLE = "RCM_DRIVER_KEY"
 
     def prepare(self, host, space, item):
         item.driver_port = host.choose_driver_port()
+        item.driver_key = secrets.token_hex(16)
+
+    def environment(self, item, env):
+        return dict(env, **{self.KEY_VARIABLE: item.driver_key})
 
     def params(self, item):
         kept = [p for p in split_params(item.params) if not p.startswith("port=")]
@@ -311,6 +324,7 @@ class ServiceItem:
         self.nodes = []         # ROS node names (the node itself, or the launcher's nodes)
         self.node_types = {}    # launcher node name -> (package, type)
         self.driver_port = None
+        self.driver_key = None
         self.inbound_port = None
 
     @classmethod

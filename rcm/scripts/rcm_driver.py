@@ -5,7 +5,11 @@ It owns three things and nothing else:
 
 - the agent side: a TCP server on 127.0.0.1:PORT (default 9998) speaking newline-delimited JSON objects
   (``{"rcm_d_cmd": "r_connection"|"r_disconnection", "r_name": NAME}`` in,
-  ``{"rcm_d_cmd": "e_created"|"e_removed", "r_name": NAME}`` out), several agent connections at once;
+  ``{"rcm_d_cmd": "e_created"|"e_removed", "r_name": NAME}`` out), a few agent connections at once. Started by
+  the agent, it has a one-time key in ``RCM_DRIVER_KEY`` and obeys only connections whose first line carries it
+  (``"key": KEY``); a connection without it yet is held at most ``PROOF_DEADLINE`` seconds, and when
+  ``MAX_UNPROVEN`` such wait the oldest is closed, so other local users can neither speak for the agent nor keep
+  it out. Started by hand without a key, it obeys any local connection, as it always did (README.md);
 - the ROS side: publishing ``/rcm/robot_event`` (robotics_msgs/Robot_Event) for every agent command, and
   carrying ``/firos/cb_event`` (robotics_msgs/CB_Event) back to the agent connection(s) that announced the robot
   (to every connection when none did);
@@ -14,8 +18,14 @@ It owns three things and nothing else:
 
 Run as ``rosrun rcm rcm_driver.py [port=N]`` (``port:=N`` works too). Every bad input from an agent is a log
 line, never a crash; a port already in use is one error line and exit status 1. README.md says more.
+
+What a peer sends reaches the log cut (``_preview``) and through ``WarningBudget``: at most ``WARNING_BURST``
+such lines per ``WARNING_PERIOD`` seconds, then one line counting the rest. The RCM agent has the same rule in
+``rcm_platform.rcmp_log_guard``, but this package runs on machines where that one is not installed (a robot or
+server VM, or a ROS machine with FIROS alone), so it keeps its own few lines of it.
 """
 
+import hmac
 import json
 import os
 import queue
@@ -37,6 +47,12 @@ LISTEN_HOST = "127.0.0.1"
 DEFAULT_PORT = 9998
 MAX_LINE_BYTES = 4096            # an agent line longer than this is discarded (a robot name is short)
 MAX_PENDING_OUT_BYTES = 1 << 20  # an agent that stops reading is dropped rather than buffered forever
+MAX_AGENTS = 8                   # agent connections obeyed at once (the agent opens one per service space)
+MAX_UNPROVEN = 16                # connections waiting to show the key; the oldest goes when another comes
+PROOF_DEADLINE = 10.0            # seconds a connection has to send its first line with the key
+KEY_VARIABLE = "RCM_DRIVER_KEY"  # the one-time key the agent starts rcm_driver with (never on the command line)
+WARNING_BURST = 10               # warnings an agent connection (or ROS peer) can cause per window ...
+WARNING_PERIOD = 10.0            # ... of this many seconds; the rest are counted in one line
 SUBSCRIBER_WAIT = 2.0            # seconds to wait for known subscribers to connect before publishing
 STOP_POLL = 0.05                 # seconds between two looks of the main thread at a stop request
 
@@ -114,11 +130,12 @@ def parse_agent_line(raw):
     if command is None:
         raise BadLine('field "rcm_d_cmd" is missing')
     if command not in AGENT_COMMANDS:
-        raise BadLine(f"unknown command {command!r} (known: {', '.join(sorted(AGENT_COMMANDS))})")
+        raise BadLine(f"unknown command {_preview(command, 40)} (known: {', '.join(sorted(AGENT_COMMANDS))})")
     if name is None:
         raise BadLine('field "r_name" is missing')
     if not isinstance(name, str) or not ROBOT_NAME.match(name):
-        raise BadLine(f"r_name {name!r} is not a robot name (a letter, then letters, digits and underscores)")
+        raise BadLine(f"r_name {_preview(name, 60)} is not a robot name (a letter, then letters, digits and "
+                      f"underscores)")
     return command, name
 
 
@@ -153,15 +170,50 @@ def firos_info_json(instance_name, topics):
     return json.dumps({instance_name: {"topics": topics}})
 
 
+def line_key(raw):
+    """The ``key`` field of an agent line (bytes), or None when it has none or is not a JSON object."""
+    try:
+        obj = json.loads(raw.decode("utf-8"))
+    except (UnicodeDecodeError, ValueError):
+        return None
+    key = obj.get("key") if isinstance(obj, dict) else None
+    return key if isinstance(key, str) else None
+
+
+class WarningBudget:
+    """At most ``burst`` warnings per window of ``period`` seconds; the first warning of a later window first says
+    how many were left out. (The agent's ``rcmp_log_guard.Budget`` in a dozen lines: see the module docstring.)"""
+
+    def __init__(self, burst=WARNING_BURST, period=WARNING_PERIOD, clock=time.monotonic):
+        self.burst, self.period, self.clock = burst, period, clock
+        self.start, self.written, self.left_out = None, 0, 0
+
+    def warn(self, message, *args):
+        now = self.clock()
+        if self.start is None or now >= self.start + self.period:
+            if self.left_out:
+                rospy.logwarn("rcm_driver: %d more warnings were left out of the log in the last %.0f s",
+                              self.left_out, self.period)
+            self.start, self.written, self.left_out = now, 0, 0
+        if self.written < self.burst:
+            self.written += 1
+            rospy.logwarn(message, *args)
+        else:
+            self.left_out += 1
+
+
 # ---------------------------------------------------------------------------------------------------------
 # The agent side: one thread with a selector, every socket non-blocking, all socket work in that thread.
 
 class AgentConnection:
-    """One agent's TCP connection: what it sent so far, what waits to be sent, which robots it announced."""
+    """One agent's TCP connection: what it sent so far, what waits to be sent, which robots it announced, and
+    whether it showed the key (``proven``; always, when rcm_driver has none) or must by ``deadline``."""
 
-    def __init__(self, sock, peer):
+    def __init__(self, sock, peer, proven, deadline):
         self.sock = sock
         self.peer = peer
+        self.proven = proven
+        self.deadline = deadline
         self.inbuf = bytearray()
         self.outbuf = bytearray()
         self.discarding = False      # inside an overlong line: drop bytes until its newline
@@ -171,16 +223,21 @@ class AgentConnection:
 class AgentServer:
     """The TCP server for local RCM agents.
 
-    ``on_command(command, robot_name)`` is called (in the server thread) for every good line.
-    ``send_entity_event`` may be called from any thread; the server thread does the sending.
+    ``on_command(command, robot_name)`` is called (in the server thread) for every good line of a connection that
+    showed ``key`` (every connection's, without a key). ``send_entity_event`` may be called from any thread; the
+    server thread does the sending.
     """
 
-    def __init__(self, listen_sock, on_command, max_pending_out=MAX_PENDING_OUT_BYTES):
+    def __init__(self, listen_sock, on_command, max_pending_out=MAX_PENDING_OUT_BYTES, key=None,
+                 proof_deadline=PROOF_DEADLINE):
         self.listen_sock = listen_sock
         self.on_command = on_command
         self.max_pending_out = max_pending_out
+        self.key = key
+        self.proof_deadline = proof_deadline
+        self.warnings = WarningBudget()
         self.selector = selectors.DefaultSelector()
-        self.clients = {}                          # socket -> AgentConnection
+        self.clients = {}                          # socket -> AgentConnection (in the order they came)
         self.pending = []                          # (robot_name, answer) waiting for the server thread
         self.lock = threading.Lock()
         self.stopping = False
@@ -231,18 +288,22 @@ class AgentServer:
     def _run(self):
         try:
             while not self.stopping:
-                for key, events in self.selector.select():
+                ready = self.selector.select(self._until_next_deadline())
+                # what connections sent first, then new connections: an agent's first line is read before a
+                # flood of new connections can push its connection out of the waiting ones
+                for key, events in sorted(ready, key=lambda pair: pair[0].data == "listen"):
                     if key.data == "listen":
                         self._accept()
                     elif key.data == "wake":
                         self._drain_wake()
                     else:
                         client = key.data
-                        if events & selectors.EVENT_READ:
+                        if events & selectors.EVENT_READ and client.sock in self.clients:
                             self._read(client)
                         if events & selectors.EVENT_WRITE and client.sock in self.clients:
                             self._flush(client)
                 self._deliver_pending()
+                self._drop_overdue()
         except Exception as exc:  # a bug here must be visible, must not leave sockets open, and stops the node
             rospy.logerr("rcm_driver: agent server stopped by an unexpected error: %r; stopping the node", exc)
             self.failed = True
@@ -262,13 +323,37 @@ class AgentServer:
         except (BlockingIOError, InterruptedError):
             return
         except OSError as exc:
-            rospy.logwarn("rcm_driver: accepting an agent connection failed: %s", exc)
+            self.warnings.warn("rcm_driver: accepting an agent connection failed: %s", exc)
             return
         sock.setblocking(False)
-        client = AgentConnection(sock, f"{addr[0]}:{addr[1]}")
+        proven = self.key is None
+        client = AgentConnection(sock, f"{addr[0]}:{addr[1]}", proven, time.monotonic() + self.proof_deadline)
+        if proven and self._count(proven=True) >= MAX_AGENTS:
+            sock.close()
+            self.warnings.warn("rcm_driver: connection from %s refused: %d agent connections are open already",
+                               client.peer, MAX_AGENTS)
+            return
+        unproven = [c for c in self.clients.values() if not c.proven]
+        if not proven and len(unproven) >= MAX_UNPROVEN:
+            self._close(unproven[0], "another connection came while it still had not shown the key", warn=True)
         self.clients[sock] = client
         self.selector.register(sock, selectors.EVENT_READ, client)
-        rospy.loginfo("rcm_driver: agent %s connected (%d connection(s))", client.peer, len(self.clients))
+        if proven:
+            rospy.loginfo("rcm_driver: agent %s connected (%d connection(s))", client.peer, self._count(True))
+        else:
+            self._read(client)       # an agent writes its first line as it connects: often it is here already
+
+    def _count(self, proven):
+        return sum(1 for c in self.clients.values() if c.proven == proven)
+
+    def _until_next_deadline(self):
+        deadlines = [c.deadline for c in self.clients.values() if not c.proven]
+        return max(0.0, min(deadlines) - time.monotonic()) if deadlines else None
+
+    def _drop_overdue(self):
+        now = time.monotonic()
+        for client in [c for c in self.clients.values() if not c.proven and c.deadline <= now]:
+            self._close(client, f"no line with the key within {self.proof_deadline:g} s", warn=True)
 
     def _read(self, client):
         try:
@@ -282,7 +367,7 @@ class AgentServer:
             self._close(client, "closed by the agent")
             return
         client.inbuf += data
-        while True:
+        while client.sock in self.clients:
             end = client.inbuf.find(b"\n")
             if end < 0:
                 break
@@ -292,9 +377,12 @@ class AgentServer:
                 client.discarding = False  # the rest of an overlong line, already reported
                 continue
             self._handle_line(client, line)
-        if len(client.inbuf) > MAX_LINE_BYTES:
-            rospy.logwarn("rcm_driver: agent %s: line longer than %d bytes discarded",
-                          client.peer, MAX_LINE_BYTES)
+        if client.sock in self.clients and len(client.inbuf) > MAX_LINE_BYTES:
+            if not client.proven:
+                self._close(client, f"a first line longer than {MAX_LINE_BYTES} bytes", warn=True)
+                return
+            self.warnings.warn("rcm_driver: agent %s: line longer than %d bytes discarded",
+                               client.peer, MAX_LINE_BYTES)
             client.inbuf.clear()
             client.discarding = True
 
@@ -303,28 +391,46 @@ class AgentServer:
         if not line.strip():
             return
         if len(line) > MAX_LINE_BYTES:
-            rospy.logwarn("rcm_driver: agent %s: line longer than %d bytes discarded",
-                          client.peer, MAX_LINE_BYTES)
+            if not client.proven:
+                self._close(client, f"a first line longer than {MAX_LINE_BYTES} bytes", warn=True)
+                return
+            self.warnings.warn("rcm_driver: agent %s: line longer than %d bytes discarded",
+                               client.peer, MAX_LINE_BYTES)
+            return
+        if not client.proven and not self._prove(client, line):
             return
         try:
             command, name = parse_agent_line(line)
         except BadLine as exc:
-            rospy.logwarn("rcm_driver: agent %s: bad line ignored: %s: %s",
-                          client.peer, exc, _preview(line))
+            self.warnings.warn("rcm_driver: agent %s: bad line ignored: %s: %s", client.peer, exc, _preview(line))
             return
         client.announced.add(name)
         rospy.loginfo("rcm_driver: agent %s: %s %s", client.peer, command, name)
         self.on_command(command, name)
 
+    def _prove(self, client, line):
+        """The first line of a connection: it carries the key (the connection is an agent's from now on), or the
+        connection is closed. False when closed."""
+        key = line_key(line)
+        if key is None or not hmac.compare_digest(key.encode("utf-8"), self.key.encode("utf-8")):
+            self._close(client, "its first line does not carry the key the agent started rcm_driver with", warn=True)
+            return False
+        if self._count(proven=True) >= MAX_AGENTS:
+            self._close(client, f"{MAX_AGENTS} agent connections are open already", warn=True)
+            return False
+        client.proven = True
+        rospy.loginfo("rcm_driver: agent %s connected with the key (%d agent connection(s))", client.peer,
+                      self._count(proven=True))
+        return True
+
     def _deliver_pending(self):
         with self.lock:
             pending, self.pending = self.pending, []
         for robot_name, answer in pending:
-            targets = [c for c in self.clients.values() if robot_name in c.announced]
+            agents = [c for c in self.clients.values() if c.proven]
+            targets = [c for c in agents if robot_name in c.announced] or agents
             if not targets:
-                targets = list(self.clients.values())
-            if not targets:
-                rospy.logwarn("rcm_driver: %s for %s not delivered: no agent is connected", answer, robot_name)
+                self.warnings.warn("rcm_driver: %s for %s not delivered: no agent is connected", answer, robot_name)
                 continue
             data = entity_line(robot_name, answer)
             for client in targets:
@@ -359,8 +465,11 @@ class AgentServer:
         except (KeyError, ValueError):
             pass
         client.sock.close()
-        log = rospy.logwarn if warn else rospy.loginfo
-        log("rcm_driver: agent %s disconnected (%s); %d connection(s) left", client.peer, why, len(self.clients))
+        if not client.proven:   # anyone can cause these: through the budget
+            self.warnings.warn("rcm_driver: connection from %s closed: %s", client.peer, why)
+            return
+        log = self.warnings.warn if warn else rospy.loginfo
+        log("rcm_driver: agent %s disconnected (%s); %d connection(s) left", client.peer, why, self._count(True))
 
     def _close_all(self):
         for client in list(self.clients.values()):
@@ -375,8 +484,9 @@ class AgentServer:
         self.selector.close()
 
 
-def _preview(line, limit=120):
-    text = line.decode("utf-8", "replace")
+def _preview(value, limit=120):
+    """A peer's line (bytes) or name (str) for the log: its repr, cut to ``limit`` characters."""
+    text = value.decode("utf-8", "replace") if isinstance(value, bytes) else str(value)
     return repr(text if len(text) <= limit else text[:limit] + "...")
 
 
@@ -445,9 +555,9 @@ class RobotEventPublisher:
 class RcmDriver:
     """The node: the agent server, the Robot_Event publisher, the CB_Event subscriber, the firos_info service."""
 
-    def __init__(self, listen_sock):
+    def __init__(self, listen_sock, key=None):
         self.robot_events = RobotEventPublisher()
-        self.server = AgentServer(listen_sock, self._on_agent_command)
+        self.server = AgentServer(listen_sock, self._on_agent_command, key=key)
         self.subscriber = rospy.Subscriber(CB_EVENT_TOPIC, CB_Event, self._on_cb_event, queue_size=100)
         self.service = rospy.Service(FIROS_INFO_SERVICE, FIROS_Info, self._on_firos_info)
 
@@ -470,11 +580,13 @@ class RcmDriver:
     def _on_cb_event(self, msg):
         answer = ENTITY_ANSWERS.get(msg.entity_status)
         if answer is None:
-            rospy.logwarn("rcm_driver: CB_Event for %r with unknown entity_status %d ignored (expected %d or %d)",
-                          msg.entity_name, msg.entity_status, CB_Event.CREATED, CB_Event.REMOVED)
+            self.server.warnings.warn("rcm_driver: CB_Event for %s with unknown entity_status %d ignored (expected %d "
+                                      "or %d)", _preview(msg.entity_name), msg.entity_status, CB_Event.CREATED,
+                                      CB_Event.REMOVED)
             return
         if not ROBOT_NAME.match(msg.entity_name):
-            rospy.logwarn("rcm_driver: CB_Event with entity_name %r ignored: not a robot name", msg.entity_name)
+            self.server.warnings.warn("rcm_driver: CB_Event with entity_name %s ignored: not a robot name",
+                                      _preview(msg.entity_name))
             return
         self.server.send_entity_event(msg.entity_name, answer)
 
@@ -484,11 +596,12 @@ class RcmDriver:
             state = master.getSystemState()
             types = master.getTopicTypes()
         except Exception as exc:
-            rospy.logerr("rcm_driver: firos_info for %r: cannot read the ROS graph: %s", request.instance_name, exc)
+            rospy.logerr("rcm_driver: firos_info for %s: cannot read the ROS graph: %s",
+                         _preview(request.instance_name), exc)
             raise rospy.ServiceException(f"cannot read the ROS graph from the master: {exc}") from None
         excluded = EXCLUDED_NODES | {rospy.get_name()}
         topics = graph_topics(state, types, excluded_nodes=excluded)
-        rospy.loginfo("rcm_driver: firos_info for %r: %d topic entries", request.instance_name, len(topics))
+        rospy.loginfo("rcm_driver: firos_info for %s: %d topic entries", _preview(request.instance_name), len(topics))
         return FIROS_InfoResponse(json_format=firos_info_json(request.instance_name, topics))
 
 
@@ -521,6 +634,7 @@ class StopSignals:
 
 def main(argv=None):
     argv = sys.argv if argv is None else argv
+    key = os.environ.pop(KEY_VARIABLE, "") or None   # the agent's; nothing this node starts needs it
     try:
         port = parse_port(argv[1:])
     except UsageError as exc:
@@ -542,11 +656,14 @@ def main(argv=None):
         listen_sock.close()
         print(f"rcm_driver: cannot start the ROS node: {exc}", file=sys.stderr)
         return 1
-    driver = RcmDriver(listen_sock)
+    driver = RcmDriver(listen_sock, key)
     driver.start()
     stop.node_up = True
     rospy.loginfo("rcm_driver: listening for RCM agents on %s:%d; publishing %s, subscribed to %s, serving %s",
                   LISTEN_HOST, port, ROBOT_EVENT_TOPIC, CB_EVENT_TOPIC, FIROS_INFO_SERVICE)
+    if key is None:
+        rospy.logwarn("rcm_driver: started without %s: any local user may send r_connection and r_disconnection "
+                      "on port %d (the RCM agent always starts it with a key)", KEY_VARIABLE, port)
     while stop.received is None and not rospy.is_shutdown() and not driver.server.failed:
         time.sleep(STOP_POLL)
     if stop.received is not None:

@@ -335,24 +335,35 @@ function onTopicEvent(name, data) {
   }
 }
 
+/* Samples whose numbers are not finite arrive as the strings "NaN", "Infinity", "-Infinity" (the stream is strict
+   JSON); they are counted, not drawn. */
+const finitePoint = (s) => Number.isFinite(s.x) && Number.isFinite(s.y);
+const finiteValue = (s) => Number.isFinite(s.value);
+
 function drawPlot() {
   const canvas = $("topic-canvas");
   const text = $("topic-text");
   const last = plot.samples[plot.samples.length - 1];
   canvas.dataset.samples = String(plot.samples.length);
   if (!last) { canvas.hidden = true; text.hidden = true; return; }
+  let skipped = 0;
   if (last.text !== undefined) {
     canvas.hidden = true;
     text.hidden = false;
     text.textContent = last.text;
   } else {
-    text.hidden = true;
-    canvas.hidden = false;
-    if (last.x !== undefined) drawTrail(canvas); else drawLine(canvas);
+    const trail = last.x !== undefined;
+    const drawable = plot.samples.filter(trail ? finitePoint : finiteValue);
+    skipped = plot.samples.filter((s) => (trail ? s.x : s.value) !== undefined).length - drawable.length;
+    text.hidden = drawable.length > 0;
+    canvas.hidden = drawable.length === 0;
+    if (drawable.length === 0) text.textContent = "no finite value yet (the topic sends NaN or Infinity)";
+    else if (trail) drawTrail(canvas, drawable); else drawLine(canvas, drawable);
   }
   canvas.dataset.last = JSON.stringify(last);
+  canvas.dataset.skipped = String(skipped);
   $("topic-status").textContent = `${ui.topic} (${plot.type}): ${plot.samples.length} sample(s), last at ` +
-    new Date(last.t * 1000).toLocaleTimeString();
+    new Date(last.t * 1000).toLocaleTimeString() + (skipped ? `; ${skipped} not drawn (NaN or Infinity)` : "");
 }
 
 /* The plot's geometry, in CSS pixels: the canvas's backing store is its CSS box times the screen's pixel ratio,
@@ -432,8 +443,7 @@ function axes(canvas, plotted, xRange, yRange, xTitle, yTitle) {
   return { ctx, px, py, area };
 }
 
-function drawTrail(canvas) {
-  const pts = plot.samples.filter((s) => s.x !== undefined);
+function drawTrail(canvas, pts) {
   const xs = pts.map((p) => p.x), ys = pts.map((p) => p.y);
   const plotted = plotContext(canvas);
   // one scale for both axes (a circle is drawn as a circle): the trail, with room for the robot's marker around
@@ -461,7 +471,7 @@ function drawTrail(canvas) {
   ctx.beginPath();
   ctx.arc(px(last.x), py(last.y), 7, 0, 2 * Math.PI);
   ctx.fill();
-  if (last.theta !== undefined) {
+  if (Number.isFinite(last.theta)) {
     ctx.strokeStyle = "#c62828";
     ctx.beginPath();
     ctx.moveTo(px(last.x), py(last.y));
@@ -471,8 +481,7 @@ function drawTrail(canvas) {
   ctx.restore();
 }
 
-function drawLine(canvas) {
-  const pts = plot.samples.filter((s) => s.value !== undefined);
+function drawLine(canvas, pts) {
   const newest = pts[pts.length - 1].t;
   const xs = pts.map((p) => p.t - newest), ys = pts.map((p) => p.value);
   let x0 = Math.min(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);

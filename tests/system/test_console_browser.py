@@ -20,7 +20,7 @@ from tests.support.browser import Browser
 from tests.support.lifecycle import Platform
 from tests.support.paths import REPO
 from tests.support.polling import wait_until
-from tests.support.processes import ProcessGroup
+from tests.support.processes import ProcessGroup, ros_env
 
 ROOT = REPO
 DOC_SHOTS = os.environ.get("RCMP_DOC_SCREENSHOTS") == "1"
@@ -346,6 +346,35 @@ def test_a_robot_going_round_a_circle_is_drawn_as_a_circle(browser, platform, pa
     finally:
         stop_robot(platform, "circler")
     assert platform.remove_robot("circler")[0] == 200
+
+
+def test_a_topic_carrying_nan_is_drawn_without_it_and_says_so(browser, platform, page, procs):
+    """A pose that is sometimes NaN: the stream is strict JSON (before, a bare NaN broke the page's JSON.parse and
+    it reconnected into the same error for ever), the finite poses are drawn, the others counted."""
+    platform.provision_robot("nan_robot", "empty")
+    platform.robot("nan_robot", "127.0.0.7").start()
+    try:
+        platform.wait_state("nan_robot", True, True)
+        env = ros_env(master_uri=platform.space("nan_robot")[1]["ros_master_uri"])
+        env["ROS_IP"] = "127.0.0.1"
+        for pose in ("{x: .nan, y: 1.0, theta: .inf}", "{x: 2.0, y: 1.0, theta: 0.5}", "{x: 3.0, y: 1.5, theta: 0}"):
+            procs.start(["/usr/bin/rostopic", "pub", "-r", "4", "/pose", "geometry_msgs/Pose2D", pose], env=env,
+                        name="pose-publisher")
+        browser.driver.get(console_link(platform.master.base_url, "nan_robot"))
+        canvas = browser.driver.find_element(By.ID, "topic-canvas")
+        wait_until(lambda: int(canvas.get_attribute("data-samples") or 0) >= 8
+                   and int(canvas.get_attribute("data-skipped") or 0) >= 1
+                   and int(canvas.get_attribute("data-skipped")) < int(canvas.get_attribute("data-samples")),
+                   timeout=40, message="finite and NaN poses on the page")
+        page("nan-pose")
+        assert canvas.is_displayed()
+        assert "not drawn (NaN or Infinity)" in browser.driver.find_element(By.ID, "topic-status").text
+        assert stroke_box(browser)["count"] > 0                      # the finite poses are drawn
+        assert browser.js("return document.getElementById('live').textContent") == "live"
+        assert [e for e in browser.console_errors() if "Uncaught" in e.get("message", "")] == []
+    finally:
+        stop_robot(platform, "nan_robot")
+    assert platform.remove_robot("nan_robot")[0] == 200
 
 
 def test_leaving_the_page_and_coming_back_many_times_keeps_it_live(browser, platform, page):

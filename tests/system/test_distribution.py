@@ -26,7 +26,7 @@ SEED_MASTER_MODULES = [
 EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §1), recorded in docs/INSTALL.md
                  "rcmp_vpn.py",  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
                  # ours: split out of the seed's modules for one job each (CONTRACTS §6), master and robot zips
-                 "rcmp_config.py", "rcmp_process.py", "rcmp_service_item.py",
+                 "rcmp_config.py", "rcmp_log_guard.py", "rcmp_process.py", "rcmp_service_item.py",
                  "rcmp_deps.py"]  # ours: the one line naming a missing package, master and robot zips
 CONSOLE_MODULES = ["rcmp_console.py",   # ours: the console (CONTRACTS §9), master zip only
                    "rcmp_metrics.py"]   # ours: the RDAPI's /metrics, master zip only

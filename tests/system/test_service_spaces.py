@@ -2,6 +2,7 @@
 reached through a RemoteAgent that calls it directly), real rosmaster, real rosrun/roslaunch children of the
 test package robotics_test, the real rcm_driver and FIROS. Each test checks that nothing it started is left."""
 
+import json
 import os
 import random
 import shutil
@@ -389,6 +390,24 @@ class ServiceSpaceTests(unittest.TestCase):
         self.assertEqual(again.inbound_port, spaces[0].inbound_port)
 
     @defer.inlineCallbacks
+    def _driver_says_connected_and_carries_events(self, space):
+        """rcm_driver's latched /rcm/robot_event says robot1 CONNECTED, and a CB_Event comes back to the agent."""
+        env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
+                   ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
+        echoed = yield threads.deferToThread(subprocess.run, [
+            "rostopic", "echo", "-n", "1", "/rcm/robot_event"], env=env, capture_output=True, text=True,
+            timeout=30)
+        self.assertIn("instance_name: \"robot1\"", echoed.stdout)
+        self.assertIn("instance_status: 1", echoed.stdout)
+        yield threads.deferToThread(subprocess.run, [
+            "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
+            "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
+        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
+                            what="e_created from rcm_driver")
+        self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
+                      describe(self.manager, "robot1")["rcm_driver_events"])
+
+    @defer.inlineCallbacks
     def test_rcm_driver_is_told_about_the_robot(self):
         self.manager.driver_goodbye_timeout = 0.5
         logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
@@ -399,24 +418,63 @@ class ServiceSpaceTests(unittest.TestCase):
         # rcm_driver's default port or the next free ones, never an ephemeral (port-0) one that a stranger can take
         self.assertTrue(rcmp_ms.RCM_DRIVER_PORT <= driver.driver_port < 32768, driver.driver_port)
         self.assertIsNotNone(space.driver_link)
-        env = dict(self.env, ROS_MASTER_URI=space.ros_master_uri, ROS_IP=MASTER_IP,
-                   ROS_LOG_DIR=os.path.join(self.tmp, "rostopic"))
-        # rcm_driver publishes the robot's connection (latched) once told r_connection
-        echoed = yield threads.deferToThread(subprocess.run, [
-            "rostopic", "echo", "-n", "1", "/rcm/robot_event"], env=env, capture_output=True, text=True,
-            timeout=30)
-        self.assertIn("instance_name: \"robot1\"", echoed.stdout)
-        self.assertIn("instance_status: 1", echoed.stdout)
-        # and carries FIROS's entity events back on our connection
-        yield threads.deferToThread(subprocess.run, [
-            "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
-            "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
-        yield self.wait_for(lambda: describe(self.manager, "robot1").get("rcm_driver_events"),
-                            what="e_created from rcm_driver")
-        self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
-                      describe(self.manager, "robot1")["rcm_driver_events"])
+        yield self._driver_says_connected_and_carries_events(space)
         yield self.manager.teardown("robot1")
 
+
+    @defer.inlineCallbacks
+    def test_rcm_driver_obeys_only_the_agent_that_started_it(self):
+        """Issue 18: rcm_driver's local port took r_connection / r_disconnection from any local user. Now the agent
+        starts it with a one-time key: a local user's lines are refused and their connections closed, silent
+        ones cannot keep a slot, and the agent's own connection goes on working."""
+        logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
+        space = yield self.manager.create("robot1", logic, None)
+        self.assertTrue(space.paired, describe(self.manager, "robot1"))
+        driver = [i for i in space.items if i.special is not None][0]
+        self.assertNotIn(driver.driver_key, " ".join(driver.process.argv))   # not on the command line
+        port = driver.driver_port
+
+        def attack():
+            closed = []
+            for key in (None, "guessed", "0" * 32):
+                for command in ("r_disconnection", "r_connection"):
+                    with socket.create_connection(("127.0.0.1", port), timeout=15) as sock:
+                        line = {"rcm_d_cmd": command, "r_name": "robot1"}
+                        if key is not None:
+                            line["key"] = key
+                        sock.sendall(json.dumps(line).encode() + b"\n")
+                        try:
+                            closed.append(sock.recv(1) == b"")
+                        except ConnectionResetError:
+                            closed.append(True)
+            squatters = [socket.create_connection(("127.0.0.1", port), timeout=15) for _ in range(40)]
+            return closed, squatters
+        closed, squatters = yield threads.deferToThread(attack)
+        self.addCleanup(lambda: [s.close() for s in squatters])
+        self.assertEqual(closed, [True] * 6)
+        # no stranger's r_disconnection was published, and the agent's own connection still carries FIROS's
+        # events back, with the squatters still there
+        yield self._driver_says_connected_and_carries_events(space)
+        output = driver.process.tail(200)
+        self.assertEqual(output.count("r_disconnection robot1"), 0, output)
+        self.assertIn("does not carry the key", output)
+        yield self.manager.teardown("robot1")
+
+    @defer.inlineCallbacks
+    def test_a_lost_rcm_driver_connection_is_made_again(self):
+        logic = {"sn_list": [node("rcmdriver", package="rcm", node_type="rcm_driver.py")]}
+        space = yield self.manager.create("robot1", logic, None)
+        first = space.driver_link
+        self.assertIsNotNone(first)
+        driver = [i for i in space.items if i.special is not None][0]
+        yield self.wait_for(lambda: "connected with the key" in driver.process.tail(200),
+                            what="rcm_driver to obey the agent")
+        first.transport.abortConnection()                  # as rcm_driver closing it would
+        yield self.wait_for(lambda: space.driver_link not in (None, first), what="a new connection to rcm_driver")
+        yield self.wait_for(lambda: driver.process.tail(200).count("connected with the key") == 2,
+                            what="rcm_driver to see the agent again")
+        self.assertEqual(space.driver_reconnects, 1)
+        yield self.manager.teardown("robot1")
 
     @defer.inlineCallbacks
     def test_a_space_placed_on_a_server_vm_runs_its_s_side_there(self):

@@ -150,3 +150,49 @@ def test_stop_closes_every_connection_and_the_port(agent_server, agents):
     assert not server.thread.is_alive()
     assert first.at_eof() and second.at_eof()
     assert not port_accepts(server.port)
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The key the agent starts rcm_driver with: only connections that show it are obeyed (issue 18 item 4)
+
+KEY = "k3y" * 10
+
+
+def keyed(command, name, key=KEY):
+    return {"rcm_d_cmd": command, "r_name": name, "key": key}
+
+
+def test_with_a_key_only_a_connection_whose_first_line_shows_it_is_obeyed(agent_server, agents):
+    server = agent_server(key=KEY)
+    stranger, wrong, agent = agents(server.port), agents(server.port), agents(server.port)
+    stranger.announce("r_disconnection", "robot1")             # what any local user could send before
+    wrong.send(keyed("r_disconnection", "robot1", key="guess"))
+    assert stranger.at_eof() and wrong.at_eof()
+    agent.send(keyed("r_connection", "robot1"))
+    agent.announce("r_disconnection", "robot1")                # later lines of a proven connection need no key
+    wait_until(lambda: len(agent_server.commands) == 2, message="the agent's two commands")
+    assert agent_server.commands == [("r_connection", "robot1"), ("r_disconnection", "robot1")]
+    server.send_entity_event("robot1", "e_removed")
+    assert agent.read_line() == {"rcm_d_cmd": "e_removed", "r_name": "robot1"}
+
+
+def test_connections_that_never_show_the_key_cannot_keep_the_agent_out(agent_server, agents):
+    server = agent_server(key=KEY, proof_deadline=0.5)
+    squatters = [agents(server.port) for _ in range(driver.MAX_UNPROVEN * 3)]   # connected, silent
+    agent = agents(server.port)
+    agent.send(keyed("r_connection", "robot7"))
+    wait_until(lambda: agent_server.commands == [("r_connection", "robot7")], message="the agent to be obeyed")
+    assert all(s.at_eof(timeout=5) for s in squatters)     # evicted by newer ones, or past the deadline
+    wait_until(lambda: len(server.clients) == 1, message="only the agent's connection to stay")
+    assert server.warnings.written <= driver.WARNING_BURST
+
+
+def test_without_a_key_any_local_connection_is_obeyed_as_before_but_there_are_at_most_max_agents(agent_server,
+                                                                                                   agents):
+    server = agent_server()
+    clients = [agents(server.port) for _ in range(driver.MAX_AGENTS)]
+    wait_until(lambda: len(server.clients) == driver.MAX_AGENTS, message="every agent connection")
+    extra = agents(server.port)
+    assert extra.at_eof()
+    clients[0].announce("r_connection", "robot2")
+    wait_until(lambda: agent_server.commands == [("r_connection", "robot2")], message="the hand-started way")

@@ -9,6 +9,7 @@ import shutil
 import tempfile
 
 from twisted.internet import defer, reactor
+from twisted.internet.address import IPv4Address
 from twisted.trial import unittest
 from twisted.web.test.requesthelper import DummyRequest
 
@@ -21,8 +22,9 @@ from tests.support.polling import until_deferred
 class StreamRequest(DummyRequest):
     """A DummyRequest that accepts a push producer (DummyRequest only drives pull producers) and can be paused."""
 
-    def __init__(self, path=b"/console/api/events", args=None):
+    def __init__(self, path=b"/console/api/events", args=None, client="127.0.0.1"):
         super().__init__([])
+        self.client = IPv4Address("TCP", client, 40000)
         self.path = path
         self.uri = path
         self.args = args or {}
@@ -101,6 +103,8 @@ class StandInSpaces:
 class ConsoleCase(unittest.TestCase):
     """A console on real robotics data and a real (empty) process table, with a stand-in space manager."""
 
+    limits = {"max_clients": 3}
+
     def setUp(self):
         tmp = tempfile.mkdtemp(prefix="console-stream-")
         self.addCleanup(shutil.rmtree, tmp, True)
@@ -111,14 +115,14 @@ class ConsoleCase(unittest.TestCase):
         self.addCleanup(self.table.stop_all)
         self.spaces = StandInSpaces()
         self.console = rcmp_console.Console(reactor, self.data, PlatformCommands(self.data), self.spaces,
-                                            self.table, coalesce=0.01, heartbeat=0.2, max_clients=3,
-                                            max_buffer=4096)
+                                            self.table, coalesce=0.01, heartbeat=0.2, max_buffer=4096,
+                                            **self.limits)
         self.console.start()
         self.addCleanup(self.console.stop)
         self.resource = rcmp_console.ConsoleResource(self.console)
 
-    def open(self, args=None):
-        request = StreamRequest(args=args)
+    def open(self, args=None, client="127.0.0.1"):
+        request = StreamRequest(args=args, client=client)
         result = self.resource.render(request)
         return request, result
 
@@ -210,8 +214,8 @@ class ConsoleStreamTest(ConsoleCase):
         self.assertEqual(json.loads(body)["reason"], "there is no running service space named 'nobody'")
 
     @defer.inlineCallbacks
-    def test_a_loopback_client_without_a_watchers_key_is_closed(self):
-        from twisted.internet.endpoints import TCP4ClientEndpoint, connectProtocol
+    def test_a_process_that_is_not_a_watcher_is_closed_before_anything_is_read(self):
+        from twisted.internet.endpoints import UNIXClientEndpoint, connectProtocol
         from twisted.internet.protocol import Protocol
 
         class Client(Protocol):
@@ -220,14 +224,15 @@ class ConsoleStreamTest(ConsoleCase):
 
             def connectionLost(self, reason):
                 self.lost.callback(None)
-        port = self.console._listener.getHost().port
-        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
-        client.transport.write(b'{"name": "robot1", "key": "guessed"}\n')
-        yield client.lost                      # closed by the agent, not by the test
-        self.assertEqual(self.console._listener.factory.open, 0)
-        client = yield connectProtocol(TCP4ClientEndpoint(reactor, "127.0.0.1", port), Client())
-        client.transport.write(b"x" * (rcmp_console.MAX_LINE + 10))   # an endless line
-        yield client.lost
+        path = self.console.watch_socket
+        self.assertEqual(os.stat(path).st_mode & 0o777, 0o600)             # the agent's (and watchers') user only
+        self.assertEqual(os.stat(os.path.dirname(path)).st_mode & 0o777, 0o700)
+        for _ in range(3):
+            client = yield connectProtocol(UNIXClientEndpoint(reactor, path), Client())
+            client.transport.write(b'{"name": "robot1", "key": "guessed"}\n')
+            yield client.lost                      # closed by the agent, not by the test
+        self.assertEqual(self.console.notes.left_out_total, 0)
+        self.assertTrue(all(w.link is None for w in self.console.watches.values()))
 
     def test_a_topic_name_that_is_not_one_is_refused(self):
         self.spaces.add(FakeSpace("robot3", []))
@@ -250,3 +255,52 @@ class ConsoleStreamTest(ConsoleCase):
         request, _ = self.open()
         yield self.wait_event(request, lambda n, d: n == "snapshot" and len(d["robots"]) == 5,
                               "a snapshot of the present")
+
+
+class StreamPoolTest(ConsoleCase):
+    """The streams are a pool with a share per address, and a stream must be read (issue 18 row 3)."""
+
+    limits = {"max_clients": 6, "max_per_address": 2, "drain_deadline": 0.2, "stream_lifetime": 0.5}
+
+    def test_one_address_holding_its_share_leaves_the_others_served(self):
+        held = [self.open(client="127.0.0.2")[0] for _ in range(2)]
+        self.assertTrue(all(r.responseCode == 200 for r in held))
+        for _ in range(5):                      # the holder asks again and again: refused, nothing is held
+            refused, body = self.open(client="127.0.0.2")
+            self.assertEqual(refused.responseCode, 503)
+            self.assertIn("2 streams to 127.0.0.2", json.loads(body)["reason"])
+        operator, result = self.open(client="127.0.0.3")
+        self.assertEqual((operator.responseCode, result), (200, rcmp_console.server.NOT_DONE_YET))
+        topic = StreamRequest(path=b"/console/api/topic", args={b"ss_name": [b"robot9"]}, client="127.0.0.2")
+        self.resource.render(topic)                            # topic streams count in the same share
+        self.assertEqual(topic.responseCode, 503)
+        held[0].processingFailed(Exception("gone"))             # one of the holder's streams closes: room again
+        again, _ = self.open(client="127.0.0.2")
+        self.assertEqual(again.responseCode, 200)
+
+    @defer.inlineCallbacks
+    def test_a_stream_whose_client_stops_reading_is_dropped_after_the_drain_deadline(self):
+        reading, _ = self.open()
+        reading.producer.pauseProducing()       # full for a moment, then drained: kept
+        reading.producer.resumeProducing()
+        stuck, _ = self.open(client="127.0.0.2")
+        stuck.producer.pauseProducing()         # full and never drained
+        yield until_deferred(lambda: stuck.aborted, message="the stream that is not read to be dropped")
+        self.assertFalse(reading.aborted)
+        self.assertEqual(self.console.caps.per_address, {"127.0.0.1": 1})
+
+    @defer.inlineCallbacks
+    def test_a_stream_ends_normally_at_its_lifetime_and_the_page_opens_the_next(self):
+        request, _ = self.open()
+        yield until_deferred(lambda: request.finished, message="the stream to end at its lifetime")
+        self.assertFalse(request.aborted)
+        self.assertEqual(self.console.caps.open, {})
+
+    def test_what_a_stream_sends_is_strict_json(self):
+        event = rcmp_console.sse("sample", {"topic": "/pose", "sample": {"x": float("nan"), "y": float("inf"),
+                                                                        "theta": -float("inf"), "t": 1.5}})
+
+        def refuse(constant):
+            raise ValueError(constant)
+        data = json.loads(event.decode().split("data: ", 1)[1], parse_constant=refuse)
+        self.assertEqual(data["sample"], {"x": "NaN", "y": "Infinity", "theta": "-Infinity", "t": 1.5})

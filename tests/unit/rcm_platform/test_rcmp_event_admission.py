@@ -368,8 +368,8 @@ class FrameLimitTests(MasterCase):
             yield closed_by_peer(sock)
             sock.close()
         warnings = [line for line in self.log.lines if "over the 4096-byte limit" in line]
-        self.assertEqual(len(warnings), factory.WARNINGS_PER_PERIOD)
-        self.assertEqual(factory.warnings_left_out, 30 - factory.WARNINGS_PER_PERIOD)
+        self.assertEqual(len(warnings), factory.warnings.burst)
+        self.assertEqual(factory.warnings.left_out, 30 - factory.warnings.burst)
 
     @defer.inlineCallbacks
     def test_many_small_frames_before_hello_are_bounded_too(self):

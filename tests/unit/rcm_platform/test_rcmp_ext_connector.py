@@ -61,3 +61,24 @@ class ResourceTests(DataTestCase):
         self.assertEqual(code, 500)
         self.assertIn("rcmp.log", json.loads(body)["reason"])
         self.flushLoggedErrors(RuntimeError)
+
+    @defer.inlineCallbacks
+    def test_answers_are_strict_json_and_peer_strings_are_cut(self):
+        class Spaces:
+            def describe(self, ss_name):     # a space whose live state carries numbers JSON cannot
+                return {"r_nodes": [{"sn_name": "n", "state": "running", "load": float("nan")}],
+                        "inbound_port": None, "ratio": float("inf")}
+        self.resource = Rdapi(PlatformCommands(self.data), ServiceCommands(self.data, spaces=Spaces()))
+        code, body, _ = yield self.render("GET", "/service_space/read", args={b"ss_name": [b"robot1"]})
+
+        def refuse(constant):
+            raise ValueError(constant)
+        answer = json.loads(body, parse_constant=refuse)
+        self.assertEqual(code, 200)
+        self.assertEqual((answer["reason"]["r_nodes"][0]["load"], answer["reason"]["ratio"]), ("NaN", "Infinity"))
+        code, body, _ = yield self.render("GET", "/" + "a" * 16000)
+        self.assertEqual(code, 404)
+        self.assertLess(len(body), 400)
+        code, body, _ = yield self.render("GET", "/platform_instance/read", args={b"k" * 15000: [b"1"]})
+        self.assertEqual(code, 400)
+        self.assertLess(len(body), 400)

@@ -27,7 +27,7 @@ class SlowClientTests(trial.TestCase):
         self.data = RoboticsData(os.path.join(tempfile.mkdtemp(), "robotics_data.db"))
         self.addCleanup(self.data.close)
         self.site = make_site(PlatformCommands(self.data), ServiceCommands(self.data), max_connections=3,
-                              max_per_address=2, idle_timeout=30, request_deadline=0.5)
+                              max_per_address=2, idle_timeout=30, request_deadline=0.5, connection_lifetime=1.0)
         self.listener = rdapi_service(self.site, 0, "127.0.0.1", reactor=reactor)
         self.listener.startService()
         self.addCleanup(self.listener.stopService)
@@ -107,3 +107,39 @@ class SlowClientTests(trial.TestCase):
         yield until_deferred(lambda: not self.site.open_channels, timeout=10, message="the connections to close")
         status, _ = yield threads.deferToThread(self._get, "127.0.0.1")
         self.assertEqual(status, 200)
+
+    @defer.inlineCallbacks
+    def test_a_keep_alive_connection_trickling_requests_is_closed_at_its_lifetime(self):
+        """One small request every 0.1 s on one connection (each within every deadline) used to keep a slot for
+        ever: after ``connection_lifetime`` the answer says ``Connection: close`` and the connection ends; every
+        request sent was answered in full."""
+
+        def trickle():
+            conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=10)
+            answers = []
+            try:
+                conn.connect()
+                sock = conn.sock
+                for _ in range(100):
+                    conn.request("GET", "/platform_instance/read")
+                    resp = conn.getresponse()
+                    answers.append((resp.status, resp.getheader("Connection"), json.loads(resp.read())["result"]))
+                    if resp.will_close:
+                        break
+                    sock.settimeout(0.1)
+                    try:                    # wait a little between requests, and see the server close meanwhile
+                        if sock.recv(1, socket.MSG_PEEK) == b"":
+                            break
+                    except socket.timeout:
+                        pass
+                    sock.settimeout(10)
+                closed = sock.recv(1) == b"" if conn.sock is not None else True
+            finally:
+                conn.close()
+            return answers, closed
+        answers, closed = yield threads.deferToThread(trickle)
+        self.assertTrue(closed)
+        self.assertLess(len(answers), 100, "the connection was kept past its lifetime")
+        self.assertTrue(all(status == 200 and result == "OK" for status, _, result in answers))
+        self.assertGreaterEqual(self.site.expired, 1)
+        yield until_deferred(lambda: not self.site.open_channels, timeout=10, message="the connection to close")

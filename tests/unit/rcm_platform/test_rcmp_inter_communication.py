@@ -214,3 +214,58 @@ class FrameTests(unittest.TestCase):
         for op in ("Hello", "a" * 33, "x-y", "x y", "\u00e9"):
             with self.assertRaises(ic.ProtocolError, msg=op):
                 ic.decode_frame(json.dumps({"v": 1, "id": 1, "kind": "req", "op": op}).encode())
+
+
+class StrictJsonTests(unittest.TestCase):
+    """Nothing the agent sends holds a bare NaN or Infinity (strict parsers, a browser's JSON.parse, refuse them)."""
+
+    @staticmethod
+    def strict(text):
+        def refuse(constant):
+            raise ValueError(f"{constant} is not JSON")
+        return json.loads(text, parse_constant=refuse)
+
+    def test_non_finite_numbers_become_strings_everywhere_else_untouched(self):
+        value = {"x": float("nan"), "ys": [float("inf"), -float("inf"), 1.5, 2], "t": (3, float("nan")),
+                 "nested": {"deep": [{"v": float("nan")}]}, "s": "NaN", "n": None, "b": True}
+        self.assertEqual(self.strict(ic.strict_dumps(value)), {
+            "x": "NaN", "ys": ["Infinity", "-Infinity", 1.5, 2], "t": [3, "NaN"],
+            "nested": {"deep": [{"v": "NaN"}]}, "s": "NaN", "n": None, "b": True})
+        self.assertEqual(ic.strict_dumps({"a": [1.0, "x"]}, sort_keys=True), json.dumps({"a": [1.0, "x"]}))
+
+    def test_an_agent_frame_with_nan_is_strict_json(self):
+        data = ic.encode_frame({"v": 1, "id": 1, "kind": "req", "op": "item_exited",
+                                "body": {"report": {"error": float("nan")}}})
+        self.assertEqual(self.strict(data.decode())["body"]["report"]["error"], "NaN")
+
+
+class DriverLinkTests(unittest.TestCase):
+    """The agent's end of rcm_driver's port: the key on every line, garbage logged through a budget."""
+
+    def link(self, key=None):
+        try:
+            from twisted.internet.testing import StringTransport
+        except ImportError:      # Twisted before 19.7 (Ubuntu 20.04)
+            from twisted.test.proto_helpers import StringTransport
+        said = []
+        link = ic.DriverLink("robot1", lambda cmd, name: said.append((cmd, name)), key=key)
+        link.makeConnection(StringTransport())
+        return link, said
+
+    def test_each_line_carries_the_key_the_driver_was_started_with(self):
+        link, _ = self.link(key="k" * 32)
+        link.send("r_connection", "robot1")
+        line = link.transport.value()
+        self.assertTrue(line.endswith(b"\n"))
+        self.assertEqual(json.loads(line), {"rcm_d_cmd": "r_connection", "r_name": "robot1", "key": "k" * 32})
+        link, _ = self.link()
+        link.send("r_disconnection", "robot1")
+        self.assertEqual(json.loads(link.transport.value()), {"rcm_d_cmd": "r_disconnection", "r_name": "robot1"})
+
+    def test_garbage_from_the_driver_is_budgeted_and_good_lines_still_count(self):
+        link, said = self.link()
+        for n in range(40):
+            link.dataReceived(b'{"rcm_d_cmd": 7, "r_name": "' + b"x" * 3000 + b'"}\n')
+        link.dataReceived(b'{"rcm_d_cmd": "e_created", "r_name": "robot1"}\n')
+        self.assertEqual(said, [("e_created", "robot1")])
+        self.assertEqual(link.garbage.left_out_total, 40 - link.garbage.burst)

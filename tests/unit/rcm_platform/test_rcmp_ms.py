@@ -89,3 +89,17 @@ def test_any_other_remote_ros_master_uri_is_refused(answer):
 
 def test_without_a_known_address_nothing_is_accepted():
     assert rcmp_ms.remote_master_uri("http://198.51.100.7:11311/", None) is None
+
+
+def test_a_peers_item_report_is_kept_bounded_and_never_whole():
+    report = {"kind": "node", "name": "n" * 1000000, "state": float("nan"), "error": "e" * 100000,
+              "nodes": ["a"] * 5000 + [7, None], "node_types": {"a": ["pkg", "type"], "b": "not a pair"},
+              "extra": "x" * 100000, "i_name": ["not", "text"]}
+    kept = rcmp_ms.received_report(report)
+    assert set(kept) == {"kind", "name", "package", "type_or_file", "side", "i_name", "state", "error", "nodes",
+                         "node_types"}
+    assert len(kept["name"]) == rcmp_ms.REPORTED_NAME and len(kept["error"]) == rcmp_ms.REPORTED_TEXT
+    assert kept["state"] == "failed" and kept["i_name"] is None
+    assert len(kept["nodes"]) == rcmp_ms.REPORTED_NODES
+    assert kept["node_types"] == {"a": ["pkg", "type"]}
+    assert rcmp_ms.received_report({"kind": "node", "name": "x", "state": "running"})["state"] == "running"

@@ -90,6 +90,24 @@ def test_special_items_are_recognised_in_one_table():
     assert argv == ["rosrun", "rcm", "rcm_driver.py", "x:=2", "port=9999", "__name:=d"]
 
 
+class _Host:
+    def choose_driver_port(self):
+        return 9998
+
+
+def test_rcm_driver_gets_a_one_time_key_in_its_environment_never_on_its_command_line():
+    logic = {"sn_list": [node("d", package="rcm", node_type="rcm_driver.py"), node("t")], "sl_list": []}
+    driver, plain = rcmp_service_item.items_of_logic(logic)
+    driver.special.prepare(_Host(), None, driver)
+    other = rcmp_service_item.items_of_logic(logic)[0]
+    other.special.prepare(_Host(), None, other)
+    assert len(driver.driver_key) == 32 and driver.driver_key != other.driver_key     # one per start
+    env = driver.special.environment(driver, {"ROS_MASTER_URI": "http://x:1/"})
+    assert env == {"ROS_MASTER_URI": "http://x:1/", "RCM_DRIVER_KEY": driver.driver_key}
+    assert not any(driver.driver_key in word for word in driver.argv(driver.special.params(driver)))
+    assert plain.special is None
+
+
 def test_items_are_built_from_validated_entries_only():
     with pytest.raises(rcmp_command.BadRequest, match=r"sn_list\[0\] lacks the required field 'sn_side'"):
         rcmp_service_item.items_of_logic({"sn_list": [{"sn_name": "x", "sn_package": "p", "sn_type": "t"}]})
