@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 from include import discovery
 from include.config import ConfigError
 from include.discovery import TopicInfo
-from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError, \
-    parse_notification
+from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError
 from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, check_robot_name, \
     attribute_type_to_message_type, message_type_to_attribute_type, relative_topic_to_attribute, \
     split_firosstamp
@@ -30,10 +29,6 @@ from include.whitelist import WhitelistError
 log = logging.getLogger("firos.bridge")
 
 _LITERAL_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
-# NGSI versions whose broker notifies an update only when it changes something and offers no way to force it
-# (v1 Orion): the subscription also watches COMMAND, so that a repeated command (COMMAND back from [] to [p1])
-# notifies. v2 repeats use forcedUpdate (CONTRACTS §3); an NGSI-LD broker notifies every update.
-COMMAND_WATCHED = ("v1",)
 
 
 def _message_type(attr_type):
@@ -206,7 +201,9 @@ class Firos:
                         continue
                 elif not any(re.fullmatch(pattern, rel) for rel in robot.topics):
                     wildcard = True
-        if attrs and self.settings.ngsi_version in COMMAND_WATCHED:
+        if attrs and self.read_client.watches_command:
+            # a broker that notifies only real changes and cannot be forced (v1 Orion): a repeated command
+            # changes COMMAND from [] back to [p1]; v2 repeats use forcedUpdate, NGSI-LD notifies every update
             attrs.add(COMMAND)
         if attrs or wildcard:
             self.subscriptions.set(robot.name, [] if wildcard else sorted(attrs))
@@ -275,7 +272,7 @@ class Firos:
         {robot: [attributes published]}. Every notification naming a publisher attribute in COMMAND is
         published, a repeated command included; FIROS then writes COMMAND back to [] (see the module doc)."""
         try:
-            entities = parse_notification(body, self.settings.ngsi_version)
+            entities = self.read_client.parse_notification(body)
         except NotificationError as exc:
             raise ApiError(400, str(exc)) from None
         jobs = []

@@ -139,7 +139,3 @@ class TopicHandler:
             sub.unregister()
         for pub in pub_objs:
             pub.unregister()
-
-    def subscribed_topics(self, robot):
-        with self._lock:
-            return set(self._subscribers.get(robot, {}))

@@ -3,16 +3,13 @@ JSON dumps/loads, compare) over real message classes, the asymmetric cases, and 
 
 import io
 import json
-import os
 import sys
 
 import genpy
 import genpy.dynamic
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "firos", "scripts"))
-
-from include import ros_conversion as rc  # noqa: E402
+from include import ros_conversion as rc
 
 # A message with the field kinds no installed package has (char[], fixed uint8/char arrays, time[], byte[],
 # fixed arrays of messages), generated from its text as rosbag does; its element classes come from a loader.

@@ -4,18 +4,12 @@ written back once a command is taken, whitelist edits on robots already mapped, 
 NGSI-LD entity ids.
 """
 
-import os
-import sys
-
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "firos", "scripts"))
-
-from include.bridge import ApiError, Firos  # noqa: E402
-from include.config import Settings  # noqa: E402
-from include.ngsi_client import NgsiClient  # noqa: E402
-from include.whitelist import Whitelist  # noqa: E402
+from include.bridge import ApiError, Firos
+from include.config import Settings
+from include.ngsi_versions import client_for
+from include.whitelist import Whitelist
 
 
 class FakeSender:
@@ -100,7 +94,7 @@ def make(version="v2", whitelist=None, graph=None):
         "/bot/pose": ("geometry_msgs/Pose2D", True, False),
         "/bot/odom": ("geometry_msgs/Pose2D", True, False),
         "/bot/cmd": ("std_msgs/String", False, True)})
-    firos = Firos(settings, wl, {}, FakeSender(), FakeSubscriptions(), FakeTopics(), graph, NgsiClient(settings))
+    firos = Firos(settings, wl, {}, FakeSender(), FakeSubscriptions(), FakeTopics(), graph, client_for(settings))
     firos.scan()
     return firos
 
