@@ -1,13 +1,17 @@
-"""What every NGSI version's client shares: one HTTP/1.1 keep-alive connection to the context broker, the errors,
-and the interface FIROS's other modules call.
+"""What every NGSI version's client shares: one HTTP/1.1 keep-alive connection to the context broker, the errors, and
+the interface FIROS's other modules call.
 
-Owns the connection (one per client object; reconnects once when the broker dropped a kept-alive connection),
-error classification by HTTP status (`BrokerUnavailable` = cannot reach the broker or it answered 5xx, worth
-retrying; `BrokerError` = the broker refused the request, with its `status`; retrying the same thing will not
-help), "already gone" (404) meaning success for deletes and "no such entity" for reads, and the readable text of
-an error answer. The request and answer shapes of each version are its subclass's (`ngsi_v1`, `ngsi_v2`,
-`ngsi_ld`, chosen once from `ngsi_version` by `ngsi_versions.client_for`). A client object is not shared between
-threads without its lock; each thread that talks to the broker has its own.
+Owns the connection (one per client object; reconnects once when the broker dropped a kept-alive connection), error
+classification by HTTP status (`BrokerUnavailable` = cannot reach the broker or it answered 5xx, worth retrying;
+`BrokerError` = the broker refused the request, with its `status`; retrying the same thing will not help;
+`RequestTooLarge` = a 413, from the broker or because FIROS itself would not send a request over `max_request_size`),
+"already gone" (404) meaning success for deletes and "no such entity" for reads, the readable text of an error
+answer, and strict JSON: nothing FIROS sends holds NaN or Infinity (`ros_conversion` writes them as strings). Updates
+are built from attributes encoded once each (`encode_attribute` gives the attribute's JSON text, whose length the
+sender uses to pack requests under the limit; `update_body` joins them). The request and answer shapes of each
+version are its subclass's (`ngsi_v1`, `ngsi_v2`, `ngsi_ld`, chosen once from `ngsi_version` by
+`ngsi_versions.client_for`). A client object is not shared between threads without its lock; each thread that talks
+to the broker has its own.
 """
 
 import abc
@@ -21,6 +25,7 @@ import urllib.parse
 COMMAND = "COMMAND"
 DESCRIPTIONS = "descriptions"
 NOT_FOUND = 404
+TOO_LARGE = 413
 
 
 class BrokerUnavailable(Exception):
@@ -34,6 +39,15 @@ class BrokerError(Exception):
     def __init__(self, status, text):
         super().__init__(f"broker answered {status}: {text[:300]}")
         self.status = status
+
+
+class RequestTooLarge(BrokerError):
+    """A request over the broker's size limit: refused by the broker (413) or never sent (over
+    ``max_request_size``). ``size`` is its size in bytes when known."""
+
+    def __init__(self, text, size=None):
+        super().__init__(TOO_LARGE, text)
+        self.size = size
 
 
 class NotificationError(ValueError):
@@ -65,6 +79,11 @@ def problem_text(parsed, text):
     return text
 
 
+def strict_json(obj):
+    """Compact JSON text of ``obj``; ValueError for NaN or an infinity (JSON has none)."""
+    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+
+
 def iso_utc(ts):
     return datetime.datetime.fromtimestamp(ts, datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%S.%fZ")[:-4] + "Z"
 
@@ -87,6 +106,7 @@ class NgsiClient(abc.ABC):
         self.port = settings.broker_port
         self.type = settings.context_type
         self.timeout = timeout
+        self.max_request_size = settings.max_request_size
         self.lock = threading.Lock()
         self._conn = None
         self.headers = {"Accept": "application/json"}
@@ -109,8 +129,17 @@ class NgsiClient(abc.ABC):
         return entity_id if isinstance(entity_id, str) else None
 
     @abc.abstractmethod
-    def update(self, entities):
-        """Append/update attributes. ``entities``: {robot: {attr: (type, value)}} with plain (decoded) values."""
+    def encode_attribute(self, name, atype, value):
+        """The JSON text of one attribute as this version's update carries it (a plain, decoded ``value``);
+        ValueError (NgsiEncodingError) when the value is not JSON-safe."""
+
+    @abc.abstractmethod
+    def update_body(self, encoded):
+        """The body (bytes) of one update request of ``encoded``: {robot: [encode_attribute texts]}."""
+
+    @abc.abstractmethod
+    def _send_update(self, body):
+        """Send an update body built by update_body."""
 
     @abc.abstractmethod
     def _delete_entity(self, robot):
@@ -138,6 +167,30 @@ class NgsiClient(abc.ABC):
         NotificationError when the body is not a notification this version's broker sends."""
 
     # --- common ------------------------------------------------------------------------------------------------
+    def update(self, entities):
+        """Append/update attributes. ``entities``: {robot: {attr: (type, value)}} with plain (decoded) values."""
+        if entities:
+            self.send_update({robot: [self.encode_attribute(name, atype, value)
+                                      for name, (atype, value) in attrs.items()]
+                              for robot, attrs in entities.items()})
+
+    def send_update(self, encoded):
+        """Send one update of attributes already encoded ({robot: [encode_attribute texts]});
+        RequestTooLarge without sending anything when its body would be over ``max_request_size``."""
+        body = self.update_body(encoded)
+        if len(body) > self.max_request_size:
+            raise RequestTooLarge(f"an update of {len(body)} bytes is over max_request_size "
+                                  f"({self.max_request_size} bytes)", len(body))
+        self._send_update(body)
+
+    def body_overhead(self):
+        """Bytes of an update body that carries nothing."""
+        return len(self.update_body({}))
+
+    def entity_overhead(self, robot):
+        """Bytes one more robot adds to an update body, besides its attributes and one comma each."""
+        return len(self.update_body({robot: []})) - self.body_overhead() + 1
+
     def delete_entity(self, robot):
         """Delete the robot's entity; an entity that is already gone is fine."""
         try:
@@ -168,12 +221,13 @@ class NgsiClient(abc.ABC):
             self._conn.close()
             self._conn = None
 
-    def request(self, method, path, body=None, ok=(200, 201, 204)):
-        """Send one request (JSON body) and return (status, headers, parsed JSON or None)."""
-        data = None
+    def request(self, method, path, body=None, ok=(200, 201, 204), data=None):
+        """Send one request (``body`` as JSON, or ``data``, bytes of JSON text) and return (status, headers,
+        parsed JSON or None)."""
         headers = dict(self.headers)
         if body is not None:
-            data = json.dumps(body, separators=(",", ":")).encode("utf-8")
+            data = strict_json(body).encode("utf-8")
+        if data is not None:
             headers["Content-Type"] = "application/json"
         for attempt in (1, 2):
             if self._conn is None:
@@ -204,6 +258,8 @@ class NgsiClient(abc.ABC):
                 parsed = None
         if status >= 500:
             raise BrokerUnavailable(f"broker answered {status}: {problem_text(parsed, text)[:200]}")
+        if status == TOO_LARGE:
+            raise RequestTooLarge(problem_text(parsed, text), len(data or b""))
         if status not in ok:
             raise BrokerError(status, problem_text(parsed, text))
         self.check_answer(parsed)

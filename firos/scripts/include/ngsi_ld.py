@@ -14,7 +14,7 @@ import urllib.parse
 
 from include import ngsi_encoding
 from include.ngsi_client import COMMAND, BrokerError, NgsiClient, NotificationError, iso_utc, notified_entities, \
-    problem_text, quote
+    problem_text, quote, strict_json
 
 LD_BASE = "/ngsi-ld/v1"
 LD_CONTEXT_REL = "http://www.w3.org/ns/json-ld#context"
@@ -113,19 +113,21 @@ class NgsiLdClient(NgsiClient):
         except ngsi_encoding.NgsiEncodingError:
             return None
 
-    def update(self, entities):
+    def encode_attribute(self, name, atype, value):
+        return strict_json(name) + ":" + strict_json(ld_property(atype, value))
+
+    def update_body(self, encoded):
+        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (strict_json(self.entity_id(robot)),
+                                                           strict_json(self.type),
+                                                           "".join("," + text for text in attrs))
+                            for robot, attrs in encoded.items())
+        return ("[%s]" % entities).encode("utf-8")
+
+    def _send_update(self, body):
         """NGSI-LD batch upsert with options=update: entities are created when missing, otherwise the given
         attributes are replaced and the others kept (ETSI GS CIM 009 5.6.8 / 6.15.3.1). A 207 answer lists the
         entities the broker refused: that is a BrokerError naming them."""
-        if not entities:
-            return
-        payload = []
-        for robot, attrs in entities.items():
-            entity = {"id": self.entity_id(robot), "type": self.type}
-            for name, (atype, value) in attrs.items():
-                entity[name] = ld_property(atype, value)
-            payload.append(entity)
-        status, _, answer = self.request("POST", f"{LD_BASE}/entityOperations/upsert?options=update", payload,
+        status, _, answer = self.request("POST", f"{LD_BASE}/entityOperations/upsert?options=update", data=body,
                                          ok=(200, 201, 204, 207))
         if status == 207:
             errors = answer.get("errors") if isinstance(answer, dict) else None

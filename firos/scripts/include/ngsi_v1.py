@@ -11,7 +11,7 @@ also watch `COMMAND` (`watches_command`): a repeated command changes it from `[]
 import json
 
 from include import ngsi_encoding
-from include.ngsi_client import BrokerError
+from include.ngsi_client import BrokerError, strict_json
 from include.ngsi_orion import OrionClient, decode_value
 
 
@@ -65,13 +65,17 @@ class NgsiV1Client(OrionClient):
             element["attributes"] = attributes
         return element
 
-    def update(self, entities):
-        if not entities:
-            return
-        elements = [self._element(robot, [{"name": name, "type": atype, "value": encode_value(value)}
-                                          for name, (atype, value) in attrs.items()])
-                    for robot, attrs in entities.items()]
-        self.request("POST", "/v1/updateContext", {"contextElements": elements, "updateAction": "APPEND"})
+    def encode_attribute(self, name, atype, value):
+        return strict_json({"name": name, "type": atype, "value": encode_value(value)})
+
+    def update_body(self, encoded):
+        elements = ",".join("{\"type\":%s,\"isPattern\":\"false\",\"id\":%s,\"attributes\":[%s]}"
+                            % (strict_json(self.type), strict_json(robot), ",".join(attrs))
+                            for robot, attrs in encoded.items())
+        return ("{\"contextElements\":[%s],\"updateAction\":\"APPEND\"}" % elements).encode("utf-8")
+
+    def _send_update(self, body):
+        self.request("POST", "/v1/updateContext", data=body)
 
     def _delete_entity(self, robot):
         self.request("POST", "/v1/updateContext", {"contextElements": [self._element(robot)],

@@ -7,23 +7,24 @@ by `DELETE`).
 """
 
 from include import ngsi_encoding
-from include.ngsi_client import BrokerError, iso_utc, quote
+from include.ngsi_client import BrokerError, iso_utc, quote, strict_json
 from include.ngsi_orion import OrionClient, decode_value
 
 
 class NgsiV2Client(OrionClient):
     version = "v2"
 
-    def update(self, entities):
-        if not entities:
-            return
-        payload = []
-        for eid, attrs in entities.items():
-            entity = {"id": eid, "type": self.type}
-            for name, (atype, value) in attrs.items():
-                entity[name] = {"type": atype, "value": ngsi_encoding.encode_v2(value)}
-            payload.append(entity)
-        self.request("POST", "/v2/op/update", {"actionType": "append", "entities": payload})
+    def encode_attribute(self, name, atype, value):
+        return strict_json(name) + ":" + strict_json({"type": atype, "value": ngsi_encoding.encode_v2(value)})
+
+    def update_body(self, encoded):
+        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (strict_json(robot), strict_json(self.type),
+                                                           "".join("," + text for text in attrs))
+                            for robot, attrs in encoded.items())
+        return ("{\"actionType\":\"append\",\"entities\":[%s]}" % entities).encode("utf-8")
+
+    def _send_update(self, body):
+        self.request("POST", "/v2/op/update", data=body)
 
     def _delete_entity(self, robot):
         self.request("DELETE", f"/v2/entities/{quote(robot)}?type={quote(self.type)}")

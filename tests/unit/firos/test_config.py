@@ -47,6 +47,8 @@ def _config(tmp_path, block, env="test"):
                                                          "subscription_refresh_delay": 20}}},
      "refreshed before they expire"),
     ({"contextbroker": {"address": "x"}, "fiware_servicepath": "nope"}, "must start with"),
+    ({"contextbroker": {"address": "x", "max_request_size": 100}}, "contextbroker.max_request_size must be"),
+    ({"contextbroker": {"address": "x", "max_request_size": "1MB"}}, "contextbroker.max_request_size must be"),
 ])
 def test_config_errors_name_file_and_problem(tmp_path, block, problem):
     with pytest.raises(cfg.ConfigError) as info:
@@ -78,6 +80,12 @@ def test_settings_extensions(tmp_path):
     assert (settings.endpoint_address, settings.endpoint_port) == ("203.0.113.5", 10101)
     client = client_for(settings)
     assert client.headers["Fiware-Service"] == "robots" and client.headers["Fiware-ServicePath"] == "/lab"
+
+
+def test_max_request_size_defaults_to_orions_limit(tmp_path):
+    assert cfg.load_settings(_config(tmp_path, {"contextbroker": {"address": "x"}})).max_request_size == 1048576
+    settings = cfg.load_settings(_config(tmp_path, {"contextbroker": {"address": "x", "max_request_size": 8000000}}))
+    assert settings.max_request_size == 8000000 and client_for(settings).max_request_size == 8000000
 
 
 def test_ld_settings(tmp_path):
