@@ -146,6 +146,18 @@ class Firos:
     def output(self):
         return self.procs.output(self.process)
 
+    def python_pid(self):
+        """The pid of FIROS's python process (rosrun execs it) in the child's process group."""
+        for entry in os.listdir("/proc"):
+            try:
+                if entry.isdigit() and os.getpgid(int(entry)) == self.process.pid:
+                    with open(f"/proc/{entry}/cmdline", "rb") as f:
+                        if b"core.py" in f.read():
+                            return int(entry)
+            except OSError:
+                continue
+        raise AssertionError("no FIROS process found")
+
     def alive(self):
         return self.process.poll() is None
 

@@ -1,13 +1,13 @@
 """The FIROS domain: which robots are connected, and what connecting, disconnecting and a broker notification do.
 
-Owns the robot table and the rules of CONTRACTS §3 that tie the other modules together: connecting a robot
-creates its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for
-its publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics
-of a connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to
-the empty list (the command is taken), so that whatever the broker re-sends without a new update commands
-nothing. A whitelist edit takes effect on the robots already mapped: topics no longer allowed are dropped,
-newly allowed ones mapped. Robots explicitly disconnected are not brought back by graph discovery until they are
-connected again. Errors a client can cause raise `ApiError`.
+Owns the robot table and the rules of CONTRACTS §3 that tie the other modules together: connecting a robot creates
+its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for its
+publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics of a
+connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to the empty
+list (the command is taken), so that whatever the broker re-sends without a new update commands nothing. A whitelist
+edit takes effect on the robots already mapped: topics no longer allowed are dropped, newly allowed ones mapped, and
+the limits it sets passed on to the sender. Robots explicitly disconnected are not brought back by graph discovery
+until they are connected again. Errors a client can cause raise `ApiError`.
 """
 
 import logging
@@ -163,7 +163,7 @@ class Firos:
             for relative, info in topics.items():
                 before = None if replace else old.get(relative)
                 if before is not None and before.msg_type == info.msg_type:
-                    info = TopicInfo(info.name, relative, info.msg_type, before.kinds | info.kinds)
+                    info = TopicInfo(info.name, relative, info.msg_type, before.kinds | info.kinds, *info.limits)
                 new[relative] = info
             robot.topics = new
         changed = False
@@ -181,6 +181,7 @@ class Firos:
         changed = changed or any(relative not in old for relative in new)
         for info in list(new.values()):
             if "subscriber" in info.kinds:
+                self.sender.set_limits(robot.name, info.attribute, *info.limits)
                 try:
                     self.topics.subscribe(robot.name, info)
                 except ConversionError as exc:
@@ -418,9 +419,11 @@ class Firos:
                 else:
                     allowed = {}
                     for relative, info in robot.topics.items():
-                        kinds = info.kinds & self.whitelist.topic_kinds(robot.name, relative)
+                        kinds = info.kinds & discovery.mapped_kinds(self.whitelist, robot.name, relative,
+                                                                    info.msg_type)
                         if kinds:
-                            allowed[relative] = TopicInfo(info.name, relative, info.msg_type, kinds)
+                            allowed[relative] = discovery.topic_info(self.whitelist, robot.name, info.name,
+                                                                     relative, info.msg_type, kinds)
                     self._set_topics(robot, allowed, replace=True)
             try:
                 self._scan(None)

@@ -63,3 +63,32 @@ def test_names_and_types_come_from_ngsi_encoding_only():
     wl = Whitelist("w.json", {"bot": {"subscriber": [".*"]}})
     graph = {"/bot/ok": ("std_msgs/String", True, False), "/bot/weird": ("notatype", True, False)}
     assert set(robots_from_graph(graph, wl)["bot"]) == {"ok"}
+
+
+def test_images_and_point_clouds_are_mapped_only_where_an_entry_names_them_plainly():
+    wl = Whitelist("w.json", {"bot": {"subscriber": [".*", "front/image_raw",
+                                                     {"topic": "lidar/points", "max_rate": 1, "max_size": 900000}],
+                                      "publisher": ["display/image"]}})
+    graph = {"/bot/front/image_raw": ("sensor_msgs/Image", True, False),
+             "/bot/rear/image_raw": ("sensor_msgs/Image", True, False),
+             "/bot/rear/image_raw/compressed": ("sensor_msgs/CompressedImage", True, False),
+             "/bot/lidar/points": ("sensor_msgs/PointCloud2", True, False),
+             "/bot/sonar/points": ("sensor_msgs/PointCloud", True, False),
+             "/bot/display/image": ("sensor_msgs/Image", False, True),
+             "/bot/map": ("nav_msgs/OccupancyGrid", True, False)}
+    topics = robots_from_graph(graph, wl)["bot"]
+    assert {k: v.kinds for k, v in topics.items()} == {
+        "front/image_raw": {"subscriber"}, "lidar/points": {"subscriber"}, "display/image": {"publisher"},
+        "map": {"subscriber"}}
+    assert topics["lidar/points"].limits == (1, 900000) and topics["map"].limits == (None, None)
+
+
+def test_an_rcm_robot_without_whitelist_entry_gets_no_images():
+    wl = Whitelist("w.json", {"other": {"subscriber": [".*"]}})
+    info = {"topics": [{"name": "/camera/image_raw", "msg": "sensor_msgs/Image", "type": "publisher"},
+                       {"name": "/cloud", "msg": "sensor_msgs/PointCloud2", "type": "publisher"},
+                       {"name": "/scan", "msg": "sensor_msgs/LaserScan", "type": "publisher"}]}
+    assert set(robot_from_rcm("bot", info, wl)) == {"scan"}
+    wl = Whitelist("w.json", {"bot": {"subscriber": ["scan", {"topic": "camera/image_raw", "max_rate": 1}]}})
+    topics = robot_from_rcm("bot", info, wl)
+    assert set(topics) == {"scan", "camera/image_raw"} and topics["camera/image_raw"].max_rate == 1

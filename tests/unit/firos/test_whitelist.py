@@ -2,6 +2,7 @@
 remove, restore)."""
 
 import json
+import re
 
 import pytest
 
@@ -45,3 +46,58 @@ def test_whitelist_write_remove_restore(tmp_path):
     with pytest.raises(cfg.ConfigError):
         wl.restore()
     assert wl.snapshot() == SEED_WHITELIST
+
+
+LIMITED = {"bot": {"publisher": ["cmd"],
+                   "subscriber": ["pose", {"topic": "camera/image_raw", "max_rate": 2, "max_size": 500000},
+                                  {"topic": "scan.*", "max_rate": 10}, {"topic": "scan_front", "max_rate": 5},
+                                  ".*"]}}
+
+
+def test_subscriber_entries_may_set_limits_and_the_smallest_counts(tmp_path):
+    wl = Whitelist(str(tmp_path / "whitelist.json"), LIMITED)
+    assert wl.topic_limits("bot", "camera/image_raw") == (2, 500000)
+    assert wl.topic_limits("bot", "scan_front") == (5, None)        # two entries match: the smaller rate
+    assert wl.topic_limits("bot", "scan_back") == (10, None)
+    assert wl.topic_limits("bot", "pose") == (None, None)
+    assert wl.topic_kinds("bot", "camera/image_raw") == {"subscriber"}
+    assert wl.snapshot() == LIMITED                                 # the format comes back as written
+
+
+def test_names_plainly_means_the_topic_itself_written_without_regex(tmp_path):
+    wl = Whitelist(str(tmp_path / "whitelist.json"), LIMITED)
+    assert wl.names_plainly("bot", "camera/image_raw") == {"subscriber"}
+    assert wl.names_plainly("bot", "pose") == {"subscriber"} and wl.names_plainly("bot", "cmd") == {"publisher"}
+    assert wl.names_plainly("bot", "scan_back") == set()              # only "scan.*" and ".*" match it
+    assert wl.names_plainly("bot", "camera/other") == set()
+    assert wl.names_plainly("other", "pose") == set()
+
+
+@pytest.mark.parametrize("entry,problem", [
+    ({"topic": "x", "max_rate": 0}, "max_rate of 'x'"),
+    ({"topic": "x", "max_rate": "fast"}, "max_rate of 'x'"),
+    ({"topic": "x", "max_size": 1.5}, "max_size of 'x'"),
+    ({"topic": "x", "max_size": True}, "max_size of 'x'"),
+    ({"topic": "x", "speed": 3}, "may have \"max_rate\" and \"max_size\""),
+    ({"max_rate": 3}, "needs \"topic\""),
+    ({"topic": "(x"}, "not a valid regular expression"),
+    (5, "must be a list of topic regexes"),
+])
+def test_bad_limit_entries_are_refused_with_a_sentence(entry, problem):
+    with pytest.raises(WhitelistError, match=re.escape(problem)):
+        Whitelist("unused", {"bot": {"subscriber": [entry]}})
+
+
+def test_limits_are_for_subscriber_topics_only():
+    with pytest.raises(WhitelistError, match="limits .objects. are for subscriber topics"):
+        Whitelist("unused", {"bot": {"publisher": [{"topic": "cmd", "max_rate": 1}]}})
+
+
+def test_write_replaces_the_entry_of_the_same_pattern_and_remove_takes_it_by_pattern(tmp_path):
+    wl = Whitelist(str(tmp_path / "whitelist.json"), {"bot": {"subscriber": ["map"]}})
+    wl.write({"bot": {"subscriber": [{"topic": "map", "max_rate": 0.5}]}})
+    assert wl.snapshot()["bot"]["subscriber"] == [{"topic": "map", "max_rate": 0.5}]
+    assert wl.topic_limits("bot", "map") == (0.5, None)
+    wl.write({"bot": {"subscriber": ["odom"]}})
+    wl.remove({"bot": {"subscriber": ["map"]}})
+    assert wl.snapshot()["bot"]["subscriber"] == ["odom"] and wl.topic_limits("bot", "map") == (None, None)
