@@ -79,9 +79,13 @@ def problem_text(parsed, text):
     return text
 
 
+_STRICT_ENCODER = json.JSONEncoder(separators=(",", ":"), allow_nan=False)   # made once: json.dumps with these
+                                                                           # arguments makes one a call
+
+
 def strict_json(obj):
     """Compact JSON text of ``obj``; ValueError for NaN or an infinity (JSON has none)."""
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False)
+    return _STRICT_ENCODER.encode(obj)
 
 
 def iso_utc(ts):

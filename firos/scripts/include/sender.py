@@ -32,6 +32,7 @@ MAX_BATCH = 1000
 OWN_STAMPS_KEPT = 64
 TOO_LARGE_LOG_INTERVAL = 60.0      # seconds between two log lines about one attribute's values being too big
 SMALL_VALUE = 64 * 1024            # serialized bytes: smaller values of a batch go before any bigger one
+MAX_COSTS_KEPT = 4096              # robots' and attribute names' request bytes remembered
 
 
 def _serialized_size(msg):
@@ -59,6 +60,7 @@ class Sender:
         self._last_values = {}             # robot -> {attr: its text in the last update the broker took}
         self._limits = {}                  # (robot, attr) -> (seconds between two sends, max_size or None)
         self._too_large_values = {}        # (robot, attr) -> {"count", "size", "logged"}
+        self._costs = {}                   # robot -> bytes it adds to a request; attr -> its name's bytes
         self._last_sent = {}               # (robot, attr) -> monotonic time
         self._own_stamps = {}              # (robot, attr) -> deque of firosstamps FIROS sent
         self._down_since = None
@@ -321,7 +323,7 @@ class Sender:
             cap, why = max_size, f"its max_size of {max_size} bytes"
         try:
             if isinstance(msg, SerializedMessage):
-                bound = json_size_lower_bound(msg.msg_class, msg.data)
+                bound = json_size_lower_bound(msg.msg_class, msg.data) if msg.size >= SMALL_VALUE else 0
                 if bound > cap:
                     self._too_large(robot, attr, bound, why, estimated=True)
                     return None
@@ -339,11 +341,28 @@ class Sender:
 
     def _alone_overhead(self, robot, attr):
         """Bytes of a request carrying one attribute besides the attribute's own text (COMMAND included)."""
-        return (self._body_overhead + self.client.entity_overhead(robot) + self._command_overhead
-                + 2 * self._name_cost(attr))
+        return self._body_overhead + self._entity_cost(robot) + self._command_overhead + 2 * self._name_cost(attr)
+
+    def _entity_cost(self, robot):
+        """Bytes one more robot adds to a request, besides its attributes (remembered: robots are few)."""
+        cost = self._costs.get(robot)
+        if cost is None:
+            cost = self._remember(robot, self.client.entity_overhead(robot))
+        return cost
 
     def _name_cost(self, name):
-        return len(strict_json(name)) + 1
+        """Bytes an attribute's name adds to COMMAND (remembered: attributes are the mapped topics)."""
+        key = ("name", name)
+        cost = self._costs.get(key)
+        if cost is None:
+            cost = self._remember(key, len(strict_json(name)) + 1)
+        return cost
+
+    def _remember(self, key, cost):
+        if len(self._costs) >= MAX_COSTS_KEPT:      # robots and topics that came and went: start afresh
+            self._costs.clear()
+        self._costs[key] = cost
+        return cost
 
     def _pack(self, items):
         """Requests (lists of items) each under max_request_size with every robot's COMMAND, items in order; an
@@ -370,7 +389,7 @@ class Sender:
         robot, name, text, _ = item
         cost = len(text) + 1 + self._name_cost(name)
         if new_robot:
-            cost += self.client.entity_overhead(robot) + self._command_overhead
+            cost += self._entity_cost(robot) + self._command_overhead
         return cost
 
     def _post(self, items, robots=(), counted=True):
