@@ -9,14 +9,14 @@ PACKAGES=(
   python3-rosnode python3-rosservice python3-rosparam python3-std-msgs python3-geometry-msgs
   python3-sensor-msgs python3-genpy python3-genmsg catkin python3-catkin-pkg ros-message-generation
   ros-message-runtime libstd-msgs-dev libgeometry-msgs-dev libroscpp-dev cmake g++
-  # FIROS's common message types (its conversion is tested on every type of these packages)
-  python3-nav-msgs python3-trajectory-msgs python3-diagnostic-msgs python3-actionlib-msgs python3-visualization-msgs
   # the agent, the RDAPI and FIROS
   python3-twisted python3-netifaces python3-yaml sqlite3
   # the platform's VPN (rcmp_vpn: PKI with python3-cryptography, OpenVPN run by the agent)
   python3-cryptography openvpn
   # tests and benchmarks
   python3-pytest python3-pytest-timeout python3-hypothesis wrk curl iproute2 procps net-tools
+  # the common message types FIROS's conversion is tested on, every type of each package
+  python3-nav-msgs python3-trajectory-msgs python3-diagnostic-msgs python3-actionlib-msgs python3-visualization-msgs
   # the console's browser tests (headless Chromium driven by Selenium)
   chromium chromium-driver python3-selenium
   # distribution
