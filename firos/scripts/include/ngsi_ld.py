@@ -14,7 +14,7 @@ import urllib.parse
 
 from include import ngsi_encoding
 from include.ngsi_client import COMMAND, BrokerError, NgsiClient, NotificationError, iso_utc, notified_entities, \
-    problem_text, quote, strict_json
+    json_member, json_string, problem_text, quote
 
 LD_BASE = "/ngsi-ld/v1"
 LD_CONTEXT_REL = "http://www.w3.org/ns/json-ld#context"
@@ -114,11 +114,11 @@ class NgsiLdClient(NgsiClient):
             return None
 
     def encode_attribute(self, name, atype, value):
-        return strict_json(name) + ":" + strict_json(ld_property(atype, value))
+        return json_member(name, ld_property(atype, value))
 
     def update_body(self, encoded):
-        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (strict_json(self.entity_id(robot)),
-                                                           strict_json(self.type),
+        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (json_string(self.entity_id(robot)),
+                                                           json_string(self.type),
                                                            "".join("," + text for text in attrs))
                             for robot, attrs in encoded.items())
         return ("[%s]" % entities).encode("utf-8")

@@ -11,7 +11,7 @@ also watch `COMMAND` (`watches_command`): a repeated command changes it from `[]
 import json
 
 from include import ngsi_encoding
-from include.ngsi_client import BrokerError, strict_json
+from include.ngsi_client import BrokerError, json_string, strict_json
 from include.ngsi_orion import OrionClient, decode_value
 
 
@@ -70,7 +70,7 @@ class NgsiV1Client(OrionClient):
 
     def update_body(self, encoded):
         elements = ",".join("{\"type\":%s,\"isPattern\":\"false\",\"id\":%s,\"attributes\":[%s]}"
-                            % (strict_json(self.type), strict_json(robot), ",".join(attrs))
+                            % (json_string(self.type), json_string(robot), ",".join(attrs))
                             for robot, attrs in encoded.items())
         return ("{\"contextElements\":[%s],\"updateAction\":\"APPEND\"}" % elements).encode("utf-8")
 

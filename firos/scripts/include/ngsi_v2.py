@@ -7,7 +7,7 @@ by `DELETE`).
 """
 
 from include import ngsi_encoding
-from include.ngsi_client import BrokerError, iso_utc, quote, strict_json
+from include.ngsi_client import BrokerError, iso_utc, json_member, json_string, quote
 from include.ngsi_orion import OrionClient, decode_value
 
 
@@ -15,10 +15,10 @@ class NgsiV2Client(OrionClient):
     version = "v2"
 
     def encode_attribute(self, name, atype, value):
-        return strict_json(name) + ":" + strict_json({"type": atype, "value": ngsi_encoding.encode_v2(value)})
+        return json_member(name, {"type": atype, "value": ngsi_encoding.encode_v2(value)})
 
     def update_body(self, encoded):
-        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (strict_json(robot), strict_json(self.type),
+        entities = ",".join("{\"id\":%s,\"type\":%s%s}" % (json_string(robot), json_string(self.type),
                                                            "".join("," + text for text in attrs))
                             for robot, attrs in encoded.items())
         return ("{\"actionType\":\"append\",\"entities\":[%s]}" % entities).encode("utf-8")

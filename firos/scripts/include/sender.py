@@ -22,7 +22,7 @@ import logging
 import threading
 import time
 
-from include.ngsi_client import COMMAND, BrokerError, BrokerUnavailable, RequestTooLarge, strict_json
+from include.ngsi_client import COMMAND, BrokerError, BrokerUnavailable, RequestTooLarge, json_string
 from include.ngsi_encoding import FIROSSTAMP, NgsiEncodingError, split_firosstamp, with_firosstamp
 from include.ros_conversion import ConversionError, SerializedMessage, json_size_lower_bound, message_to_dict
 
@@ -33,11 +33,10 @@ OWN_STAMPS_KEPT = 64
 TOO_LARGE_LOG_INTERVAL = 60.0      # seconds between two log lines about one attribute's values being too big
 SMALL_VALUE = 64 * 1024            # serialized bytes: smaller values of a batch go before any bigger one
 MAX_COSTS_KEPT = 4096              # robots' and attribute names' request bytes remembered
-
-
-def _serialized_size(msg):
-    """The serialized size of a message still serialized; 0 for anything else (taken as small)."""
-    return msg.size if isinstance(msg, SerializedMessage) else 0
+NO_LIMITS = (0.0, None)
+# a bound on what an item adds to a request besides its text: a comma, its name in COMMAND, and for a robot not in
+# the request yet the robot's entity and COMMAND (names and robots are at most 256 characters long)
+MAX_ITEM_OVERHEAD = 2048            # an attribute without limits of its own: (seconds between sends, max_size)
 
 
 class Sender:
@@ -46,6 +45,7 @@ class Sender:
     def __init__(self, client, settings, on_created=None, on_removed=None, on_recovered=None):
         self.client = client
         self.min_interval = settings.pub_frequency / 1000.0
+        self._no_limits = (self.min_interval, None)
         self.max_request_size = settings.max_request_size
         self._body_overhead = client.body_overhead()
         self._command_overhead = len(client.encode_attribute(COMMAND, COMMAND, [])) + 1
@@ -214,7 +214,7 @@ class Sender:
                 state = self._robots.get(robot)
                 if state is None or not state["created"]:
                     continue
-                ready_at = self._last_sent.get(key, -1e9) + self._limits.get(key, (self.min_interval,))[0]
+                ready_at = self._last_sent.get(key, -1e9) + self._limits.get(key, self._no_limits)[0]
                 if ready_at <= now:
                     batch.append((key, item))
                     if len(batch) >= MAX_BATCH:
@@ -285,8 +285,12 @@ class Sender:
         """Convert and send a batch of waiting values: each value encoded once, the values packed into requests
         under the size limit (a big one rides alone), what is too big reported and dropped. Small values are
         converted and sent first, so that converting a big one never delays them."""
-        small = [entry for entry in batch if _serialized_size(entry[1][1]) < SMALL_VALUE]
-        groups = [small] + [[entry] for entry in batch if _serialized_size(entry[1][1]) >= SMALL_VALUE]
+        groups = [[]]
+        for entry in batch:
+            if isinstance(entry[1][1], SerializedMessage) and entry[1][1].size >= SMALL_VALUE:
+                groups.append([entry])
+            else:
+                groups[0].append(entry)
         sent_any = False
         for number, group in enumerate(groups):
             items = []
@@ -315,18 +319,15 @@ class Sender:
     def _encode(self, robot, attr, atype, msg, stamp):
         """The attribute's text as the update carries it, or None when it cannot or may not be sent. A message
         still serialized whose JSON is sure to be over its limit is refused without being converted."""
-        with self._cond:
-            max_size = self._limits.get((robot, attr), (0.0, None))[1]
-        room = self.max_request_size - self._alone_overhead(robot, attr)
-        cap, why = room, f"the broker's request limit of {self.max_request_size} bytes (max_request_size)"
-        if max_size is not None and max_size < room:
-            cap, why = max_size, f"its max_size of {max_size} bytes"
+        max_size = self._limits.get((robot, attr), NO_LIMITS)[1]     # one dict read: no lock needed
         try:
             if isinstance(msg, SerializedMessage):
-                bound = json_size_lower_bound(msg.msg_class, msg.data) if msg.size >= SMALL_VALUE else 0
-                if bound > cap:
-                    self._too_large(robot, attr, bound, why, estimated=True)
-                    return None
+                if msg.size >= SMALL_VALUE:
+                    bound = json_size_lower_bound(msg.msg_class, msg.data)
+                    cap, why = self._cap(robot, attr, max_size)
+                    if bound > cap:
+                        self._too_large(robot, attr, bound, why, estimated=True)
+                        return None
                 msg = msg.message()
             text = self.client.encode_attribute(
                 attr, atype, with_firosstamp(msg if isinstance(msg, dict) else message_to_dict(msg), stamp))
@@ -334,10 +335,19 @@ class Sender:
             self.stats["conversion_errors"] += 1
             log.error("cannot convert a message of %s.%s: %s", robot, attr, exc)
             return None
-        if len(text) > cap:
-            self._too_large(robot, attr, len(text), why)
-            return None
+        if len(text) > SMALL_VALUE or (max_size is not None and len(text) > max_size):
+            cap, why = self._cap(robot, attr, max_size)
+            if len(text) > cap:
+                self._too_large(robot, attr, len(text), why)
+                return None
         return text
+
+    def _cap(self, robot, attr, max_size):
+        """(the most bytes a value of robot.attr may take, and the limit that says so, as words)."""
+        room = self.max_request_size - self._alone_overhead(robot, attr)
+        if max_size is not None and max_size < room:
+            return max_size, f"its max_size of {max_size} bytes"
+        return room, f"the broker's request limit of {self.max_request_size} bytes (max_request_size)"
 
     def _alone_overhead(self, robot, attr):
         """Bytes of a request carrying one attribute besides the attribute's own text (COMMAND included)."""
@@ -355,7 +365,7 @@ class Sender:
         key = ("name", name)
         cost = self._costs.get(key)
         if cost is None:
-            cost = self._remember(key, len(strict_json(name)) + 1)
+            cost = self._remember(key, len(json_string(name)) + 1)
         return cost
 
     def _remember(self, key, cost):
@@ -367,13 +377,19 @@ class Sender:
     def _pack(self, items):
         """Requests (lists of items) each under max_request_size with every robot's COMMAND, items in order; an
         item too big even alone is reported and left out."""
+        if not items:
+            return []
+        # the common case: small values that fit in one request whatever their names and robots
+        if sum(len(item[2]) for item in items) + len(items) * MAX_ITEM_OVERHEAD <= self.max_request_size:
+            return [items]
         requests, current, size, robots = [], [], self._body_overhead, set()
         for item in items:
             robot, name, text, _ = item
-            if size + self._item_cost(item, robot not in robots) > self.max_request_size and current:
+            cost = self._item_cost(item, robot not in robots)
+            if size + cost > self.max_request_size and current:
                 requests.append(current)
                 current, size, robots = [], self._body_overhead, set()
-            cost = self._item_cost(item, robot not in robots)
+                cost = self._item_cost(item, True)
             if size + cost > self.max_request_size:
                 self._too_large(robot, name, len(text), f"the broker's request limit of {self.max_request_size} "
                                                         f"bytes (max_request_size)")
@@ -397,11 +413,12 @@ class Sender:
         value rides alone. Returns (items the broker took, whether it took any request). BrokerUnavailable
         goes up; any other refusal is logged and counted. ``counted``: the request counts in stats' requests
         (updates of values; entity creations do not)."""
-        encoded = {robot: [] for robot in robots}
-        for robot, _, text, _ in items:
+        encoded, names = {robot: [] for robot in robots}, {robot: [] for robot in robots}
+        for robot, name, text, _ in items:
             encoded.setdefault(robot, []).append(text)
+            names.setdefault(robot, []).append(name)
         for robot, texts in encoded.items():
-            texts.append(self.client.encode_attribute(COMMAND, COMMAND, [n for r, n, _, _ in items if r == robot]))
+            texts.append(self.client.encode_attribute(COMMAND, COMMAND, names[robot]))
         try:
             self.stats["requests"] += counted
             self.client.send_update(encoded)
