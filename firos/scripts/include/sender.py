@@ -60,7 +60,8 @@ class Sender:
         self._last_values = {}             # robot -> {attr: its text in the last update the broker took}
         self._limits = {}                  # (robot, attr) -> (seconds between two sends, max_size or None)
         self._too_large_values = {}        # (robot, attr) -> {"count", "size", "logged"}
-        self._costs = {}                   # robot -> bytes it adds to a request; attr -> its name's bytes
+        self._costs = {}                   # robot -> bytes it adds to a request; ("name", attr) -> its name's bytes;
+                                           # ("command", names...) -> COMMAND's text
         self._last_sent = {}               # (robot, attr) -> monotonic time
         self._own_stamps = {}              # (robot, attr) -> deque of firosstamps FIROS sent
         self._down_since = None
@@ -368,6 +369,14 @@ class Sender:
             cost = self._remember(key, len(json_string(name)) + 1)
         return cost
 
+    def _command_text(self, names):
+        """COMMAND listing ``names``, as the update carries it (remembered: the same few lists come again)."""
+        key = ("command",) + tuple(names)
+        text = self._costs.get(key)
+        if text is None:
+            text = self._remember(key, self.client.encode_attribute(COMMAND, COMMAND, list(names)))
+        return text
+
     def _remember(self, key, cost):
         if len(self._costs) >= MAX_COSTS_KEPT:      # robots and topics that came and went: start afresh
             self._costs.clear()
@@ -418,7 +427,7 @@ class Sender:
             encoded.setdefault(robot, []).append(text)
             names.setdefault(robot, []).append(name)
         for robot, texts in encoded.items():
-            texts.append(self.client.encode_attribute(COMMAND, COMMAND, names[robot]))
+            texts.append(self._command_text(names[robot]))
         try:
             self.stats["requests"] += counted
             self.client.send_update(encoded)
