@@ -377,7 +377,7 @@ def big_values_section(result, seconds, load_before):
         f"serialized, 15 Hz) and a {MAP_CELLS:,} x {MAP_CELLS:,} `nav_msgs/OccupancyGrid` "
         f"({result['map_size']:,} bytes, 1 Hz), {seconds:.0f} s each. FIROS's CPU: its process's user + system "
         f"time over the run (100 % = one core). Load average (1 / 5 min) before: {load_before}, after: "
-        f"{load_average()}; the machine is shared with other work.",
+        f"{result['load_after']}; the machine is shared with other work.",
         "",
         "| topics | poses timed | pose p50 | pose p99 | pose max | poses not notified | FIROS CPU |",
         "| --- | --- | --- | --- | --- | --- | --- |",
@@ -416,6 +416,7 @@ def main(argv=None):
         rospy.init_node("bench_firos", anonymous=True, disable_signals=True)
         try:
             big = run_big_values(procs, master, tmp, big_seconds)
+            big["load_after"] = load_average()
             if not big_only:
                 for version, _ in VERSIONS:
                     results[version] = run_version(procs, master, tmp, version, samples, seconds)
