@@ -16,7 +16,9 @@ PACKAGES=(
   # the platform's VPN (rcmp_vpn: PKI with python3-cryptography, OpenVPN run by the agent)
   python3-cryptography openvpn
   # tests and benchmarks
-  python3-pytest python3-pytest-timeout wrk curl iproute2 procps net-tools
+  python3-pytest python3-pytest-timeout python3-hypothesis wrk curl iproute2 procps net-tools
+  # the common message types FIROS's conversion is tested on, every type of each package
+  python3-nav-msgs python3-trajectory-msgs python3-diagnostic-msgs python3-actionlib-msgs python3-visualization-msgs
   # the console's browser tests (headless Chromium driven by Selenium)
   chromium chromium-driver python3-selenium
   # distribution

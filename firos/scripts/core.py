@@ -124,7 +124,7 @@ def main(argv=None):
     from include import server as http
     from include.bridge import Firos
     from include.discovery import GraphReader
-    from include.ngsi_client import NgsiClient
+    from include.ngsi_versions import client_for
     from include.rcm_bridge import RosControl
     from include.sender import Sender
     from include.subscriptions import Subscriptions
@@ -144,15 +144,15 @@ def main(argv=None):
 
     url = f"http://{address}:{port}/firos"
     holder = {}
-    sender = Sender(NgsiClient(settings), settings,
+    sender = Sender(client_for(settings), settings,
                     on_created=lambda r: holder["firos"].entity_created(r),
                     on_removed=lambda r: holder["firos"].entity_removed(r),
                     on_recovered=lambda: subscriptions.renew_all())
-    subscriptions = Subscriptions(NgsiClient(settings), settings, url,
+    subscriptions = Subscriptions(client_for(settings), settings, url,
                                   on_lost=lambda r: holder["firos"].entity_lost(r))
     topics = TopicHandler(sender)
     firos = Firos(settings, whitelist, descriptions, sender, subscriptions, topics, GraphReader(rospy.get_name()),
-                  NgsiClient(settings))
+                  client_for(settings))
     holder["firos"] = firos
     control = RosControl(firos)
     firos.events = control

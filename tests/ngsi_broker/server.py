@@ -360,8 +360,9 @@ class _Handler(BaseHTTPRequestHandler):
                 body = self._read_body(broker.max_body)
             except NgsiError as exc:
                 kind = "BadRequestData" if exc.status != 413 else "RequestEntityTooLarge"
-                self._send(problem_response(LdProblem(exc.status, kind, HTTPStatus(exc.status).phrase,
-                                                      exc.description)), close=True)
+                # the phrase of our own table: Python 3.13 calls 413 "Content Too Large", Orion-LD does not
+                title = REASON_PHRASES.get(exc.status) or HTTPStatus(exc.status).phrase
+                self._send(problem_response(LdProblem(exc.status, kind, title, exc.description)), close=True)
                 return
             fault = broker.faults.take(method, parts.path)
             if fault == 0:

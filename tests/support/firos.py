@@ -1,15 +1,22 @@
 """Helpers for FIROS tests (owned by the FIROS tests): configuration folders, FIROS as a real child
-(`rosrun firos core.py -P PORT --config DIR`), `rostopic` children, and a small JSON HTTP client.
+(`rosrun firos core.py -P PORT --config DIR`), `rostopic` children, a small JSON HTTP client, FIROS's modules on
+the import path with the settings of a written configuration, and a recording HTTP server standing for a broker.
 """
 
 import http.client
 import json
 import os
+import sys
+import threading
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import yaml
 
 from .polling import wait_until
 from .ports import stable_free_ports
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+FIROS_SCRIPTS = os.path.join(ROOT, "firos", "scripts")
 
 SEED_WHITELIST = {
     "turtle\\w+": {"publisher": ["cmd_vel"], "subscriber": ["pose"]},
@@ -37,6 +44,61 @@ def write_config(config_dir, broker_port, version="v2", whitelist=None, descript
     with open(os.path.join(config_dir, "robotdescriptions.json"), "w") as f:
         json.dump(descriptions or {}, f, indent=2)
     return config_dir
+
+
+def import_firos():
+    """Put FIROS's scripts folder on the import path (its modules are ``core`` and ``include.*``)."""
+    if FIROS_SCRIPTS not in sys.path:
+        sys.path.insert(0, FIROS_SCRIPTS)
+
+
+def settings_for(config_dir, broker_port, version="v2", **extra):
+    """FIROS's ``Settings`` from a configuration written by ``write_config`` into ``config_dir``."""
+    import_firos()
+    from include.config import load_settings
+    write_config(str(config_dir), broker_port, version=version, **extra)
+    return load_settings(str(config_dir))
+
+
+class RecordingBroker:
+    """A real HTTP server on loopback that records each request as (client port, path, body) and answers it with
+    ``answer(index, method, path, body) -> (status, JSON body or None)``; by default 500 to the first
+    ``failures`` requests and 204 afterwards (a broker in trouble, then well)."""
+
+    def __init__(self, failures=0, answer=None):
+        self.requests = []
+        self.failures = failures
+        self.answer = answer or (lambda index, method, path, body: (500 if index < failures else 204, None))
+        recorder = self
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def log_message(self, *args):
+                pass
+
+            def _record(self):
+                length = int(self.headers.get("Content-Length") or 0)
+                body = json.loads(self.rfile.read(length)) if length else None
+                recorder.requests.append((self.client_address[1], self.path, body))
+                status, answer = recorder.answer(len(recorder.requests) - 1, self.command, self.path, body)
+                data = b"" if answer is None else json.dumps(answer).encode()
+                self.send_response(status)
+                if data:
+                    self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            do_GET = do_POST = do_PATCH = do_DELETE = _record
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.port = self.httpd.server_address[1]
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def close(self):
+        self.httpd.shutdown()
+        self.httpd.server_close()
 
 
 def request(port, method, path, body=None, raw=None, timeout=10.0, headers=None):
@@ -83,6 +145,18 @@ class Firos:
 
     def output(self):
         return self.procs.output(self.process)
+
+    def python_pid(self):
+        """The pid of FIROS's python process (rosrun execs it) in the child's process group."""
+        for entry in os.listdir("/proc"):
+            try:
+                if entry.isdigit() and os.getpgid(int(entry)) == self.process.pid:
+                    with open(f"/proc/{entry}/cmdline", "rb") as f:
+                        if b"core.py" in f.read():
+                            return int(entry)
+            except OSError:
+                continue
+        raise AssertionError("no FIROS process found")
 
     def alive(self):
         return self.process.poll() is None

@@ -3,6 +3,10 @@ message it receives on the topics it subscribes to as one line `RECV <topic> <js
 
     /usr/bin/python3 -m tests.support.firos_talker --rate 5 \
         --pub /bot/twist geometry_msgs/Twist '{"linear": {"x": 1.5}}' --sub /bot/cmd geometry_msgs/Twist
+
+``--pub-file TOPIC TYPE PATH`` takes the message's JSON from a file (messages too big for a command line);
+``--stamp TOPIC FIELD`` writes a new value (the count of messages published so far) into a float field of that
+topic's message before each publish, so that every message is distinct.
 """
 
 import argparse
@@ -22,21 +26,31 @@ def main(argv=None):
     parser = argparse.ArgumentParser()
     parser.add_argument("--rate", type=float, default=5.0)
     parser.add_argument("--pub", nargs=3, action="append", default=[], metavar=("TOPIC", "TYPE", "JSON"))
+    parser.add_argument("--pub-file", nargs=3, action="append", default=[], metavar=("TOPIC", "TYPE", "PATH"))
+    parser.add_argument("--stamp", nargs=2, action="append", default=[], metavar=("TOPIC", "FIELD"))
     parser.add_argument("--sub", nargs=2, action="append", default=[], metavar=("TOPIC", "TYPE"))
     args = parser.parse_args(rospy.myargv(sys.argv if argv is None else argv)[1:])
     rospy.init_node("firos_talker", anonymous=True)
     pubs = []
+    for topic, type_name, path in args.pub_file:
+        with open(path) as f:
+            args.pub.append([topic, type_name, f.read()])
+    stamped = dict(args.stamp)
     for topic, type_name, value in args.pub:
         cls = load_message_class(type_name)
-        pubs.append((rospy.Publisher(topic, cls, queue_size=10), dict_to_message(json.loads(value), cls)))
+        pubs.append((topic, rospy.Publisher(topic, cls, queue_size=10), dict_to_message(json.loads(value), cls)))
     for topic, type_name in args.sub:
         def show(msg, topic=topic):
             print("RECV", topic, json.dumps(message_to_dict(msg), sort_keys=True), flush=True)
         rospy.Subscriber(topic, load_message_class(type_name), show)
     print("READY", flush=True)
     rate = rospy.Rate(args.rate)
+    count = 0
     while not rospy.is_shutdown():
-        for pub, msg in pubs:
+        count += 1
+        for topic, pub, msg in pubs:
+            if topic in stamped:
+                setattr(msg, stamped[topic], float(count))
             pub.publish(msg)
         try:
             rate.sleep()

@@ -261,7 +261,7 @@ def test_two_robots_with_one_logic_get_separate_spaces(platform):
 def test_four_firos_robots_get_the_four_inbound_ports_and_a_fifth_waits(procs, tmp_path):
     from tests.ngsi_broker.testing import start_broker
     from tests.support.firos import write_config
-    from tests.test_firos_e2e import v2_entity
+    from tests.support.firos import v2_entity
 
     plat = Platform(procs, tmp_path / "platform", inbound_ports=4)
     try:

@@ -1,13 +1,13 @@
 """The FIROS domain: which robots are connected, and what connecting, disconnecting and a broker notification do.
 
-Owns the robot table and the rules of CONTRACTS §3 that tie the other modules together: connecting a robot
-creates its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for
-its publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics
-of a connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to
-the empty list (the command is taken), so that whatever the broker re-sends without a new update commands
-nothing. A whitelist edit takes effect on the robots already mapped: topics no longer allowed are dropped,
-newly allowed ones mapped. Robots explicitly disconnected are not brought back by graph discovery until they are
-connected again. Errors a client can cause raise `ApiError`.
+Owns the robot table and the rules of CONTRACTS §3 that tie the other modules together: connecting a robot creates
+its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for its
+publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics of a
+connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to the empty
+list (the command is taken), so that whatever the broker re-sends without a new update commands nothing. A whitelist
+edit takes effect on the robots already mapped: topics no longer allowed are dropped, newly allowed ones mapped, and
+the limits it sets passed on to the sender. Robots explicitly disconnected are not brought back by graph discovery
+until they are connected again. Errors a client can cause raise `ApiError`.
 """
 
 import logging
@@ -18,8 +18,7 @@ from dataclasses import dataclass, field
 from include import discovery
 from include.config import ConfigError
 from include.discovery import TopicInfo
-from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError, \
-    parse_notification
+from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError
 from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, check_robot_name, \
     attribute_type_to_message_type, message_type_to_attribute_type, relative_topic_to_attribute, \
     split_firosstamp
@@ -30,10 +29,6 @@ from include.whitelist import WhitelistError
 log = logging.getLogger("firos.bridge")
 
 _LITERAL_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
-# NGSI versions whose broker notifies an update only when it changes something and offers no way to force it
-# (v1 Orion): the subscription also watches COMMAND, so that a repeated command (COMMAND back from [] to [p1])
-# notifies. v2 repeats use forcedUpdate (CONTRACTS §3); an NGSI-LD broker notifies every update.
-COMMAND_WATCHED = ("v1",)
 
 
 def _message_type(attr_type):
@@ -168,7 +163,7 @@ class Firos:
             for relative, info in topics.items():
                 before = None if replace else old.get(relative)
                 if before is not None and before.msg_type == info.msg_type:
-                    info = TopicInfo(info.name, relative, info.msg_type, before.kinds | info.kinds)
+                    info = TopicInfo(info.name, relative, info.msg_type, before.kinds | info.kinds, *info.limits)
                 new[relative] = info
             robot.topics = new
         changed = False
@@ -186,6 +181,7 @@ class Firos:
         changed = changed or any(relative not in old for relative in new)
         for info in list(new.values()):
             if "subscriber" in info.kinds:
+                self.sender.set_limits(robot.name, info.attribute, *info.limits)
                 try:
                     self.topics.subscribe(robot.name, info)
                 except ConversionError as exc:
@@ -206,7 +202,9 @@ class Firos:
                         continue
                 elif not any(re.fullmatch(pattern, rel) for rel in robot.topics):
                     wildcard = True
-        if attrs and self.settings.ngsi_version in COMMAND_WATCHED:
+        if attrs and self.read_client.watches_command:
+            # a broker that notifies only real changes and cannot be forced (v1 Orion): a repeated command
+            # changes COMMAND from [] back to [p1]; v2 repeats use forcedUpdate, NGSI-LD notifies every update
             attrs.add(COMMAND)
         if attrs or wildcard:
             self.subscriptions.set(robot.name, [] if wildcard else sorted(attrs))
@@ -275,7 +273,7 @@ class Firos:
         {robot: [attributes published]}. Every notification naming a publisher attribute in COMMAND is
         published, a repeated command included; FIROS then writes COMMAND back to [] (see the module doc)."""
         try:
-            entities = parse_notification(body, self.settings.ngsi_version)
+            entities = self.read_client.parse_notification(body)
         except NotificationError as exc:
             raise ApiError(400, str(exc)) from None
         jobs = []
@@ -421,9 +419,11 @@ class Firos:
                 else:
                     allowed = {}
                     for relative, info in robot.topics.items():
-                        kinds = info.kinds & self.whitelist.topic_kinds(robot.name, relative)
+                        kinds = info.kinds & discovery.mapped_kinds(self.whitelist, robot.name, relative,
+                                                                    info.msg_type)
                         if kinds:
-                            allowed[relative] = TopicInfo(info.name, relative, info.msg_type, kinds)
+                            allowed[relative] = discovery.topic_info(self.whitelist, robot.name, info.name,
+                                                                     relative, info.msg_type, kinds)
                     self._set_topics(robot, allowed, replace=True)
             try:
                 self._scan(None)

@@ -48,6 +48,7 @@ class Settings:
     admin_token: str | None = None          # (ext) whitelist/robot edits need it, from anywhere, when set
     broker_address: str = ""
     broker_port: int = 1026
+    max_request_size: int = 1048576         # (ext) bytes; FIROS never sends a bigger request (Orion's limit)
     throttling: float = 0.0                 # seconds
     subscription_length: float = 300.0      # seconds
     subscription_refresh_delay: float = 150.0  # seconds after (re)subscribing when FIROS refreshes
@@ -165,6 +166,12 @@ def _non_negative(value):
     return float(value)
 
 
+def _size(value):
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1024:
+        raise _Bad(f"must be a whole number of bytes, at least 1024, not {value!r}")
+    return value
+
+
 def _addresses(value):
     """One IP address or a list of them (``0.0.0.0`` only when written so)."""
     values = value if isinstance(value, list) else [value]
@@ -200,6 +207,7 @@ KEYS = (
     (("server", "admin_token"), "admin_token", _token),
     (("contextbroker", "address"), "broker_address", _text("a host name or address")),
     (("contextbroker", "port"), "broker_port", _port),
+    (("contextbroker", "max_request_size"), "max_request_size", _size),
     (("contextbroker", "subscription", "throttling"), "throttling", _duration),
     (("contextbroker", "subscription", "subscription_length"), "subscription_length", _duration),
     (("contextbroker", "subscription", "subscription_refresh_delay"), "subscription_refresh_delay",

@@ -2,12 +2,16 @@
 
 A robot is the first namespace of a topic (`/turtle1/pose` → robot `turtle1`, topic `pose`); message types come
 from the master (`getTopicTypes`). FIROS's own endpoints do not count, so a topic only FIROS subscribes to is not a
-sign that the robot listens. Owns the graph reading (rosgraph, no rospy); the naming rules (topic → attribute,
-message type → attribute type) are `ngsi_encoding`'s. A topic whose name or type breaks them is left out.
+sign that the robot listens. Owns the graph reading (rosgraph, no rospy) and which kinds of a topic are mapped
+(`mapped_kinds`: what the whitelist lists, except that images and point clouds, `LARGE_MESSAGE_TYPES`, are mapped
+only where an entry names them plainly) with the limits the whitelist sets for it; the naming rules (topic →
+attribute, message type → attribute type) are `ngsi_encoding`'s. A topic whose name or type breaks them is left
+out.
 """
 
 import logging
 from dataclasses import dataclass, field
+from typing import Optional
 
 import rosgraph
 
@@ -18,6 +22,10 @@ log = logging.getLogger("firos.discovery")
 IGNORED_TOPICS = ("/rosout", "/rosout_agg")
 IGNORED_NAMESPACES = ("firos", "rcm")
 ROS_TO_BROKER_KIND = {"publisher": "subscriber", "subscriber": "publisher"}
+# Types whose messages are big (camera frames, point clouds): mapped only when a whitelist entry names the topic
+# plainly, never through a pattern such as ".*".
+LARGE_MESSAGE_TYPES = ("sensor_msgs/Image", "sensor_msgs/CompressedImage", "sensor_msgs/PointCloud2",
+                       "sensor_msgs/PointCloud")
 
 
 @dataclass
@@ -27,10 +35,30 @@ class TopicInfo:
     relative: str              # relative to the robot namespace, "cmd_vel"
     msg_type: str              # "geometry_msgs/Twist"
     kinds: set = field(default_factory=set)
+    max_rate: Optional[float] = None    # messages per second sent to the broker at most (whitelist limit)
+    max_size: Optional[int] = None      # bytes one value may take in a request (whitelist limit)
 
     @property
     def attribute(self):
         return relative_topic_to_attribute(self.relative)
+
+    @property
+    def limits(self):
+        return self.max_rate, self.max_size
+
+
+def mapped_kinds(whitelist, robot, relative, msg_type, listed=None):
+    """The kinds of a robot's topic the whitelist maps (``listed``: those it lists, when already known); a topic
+    of a large type only under the kinds whose entries name it plainly."""
+    kinds = whitelist.topic_kinds(robot, relative) if listed is None else set(listed)
+    if kinds and msg_type in LARGE_MESSAGE_TYPES:
+        kinds &= whitelist.names_plainly(robot, relative)
+    return kinds
+
+
+def topic_info(whitelist, robot, name, relative, msg_type, kinds):
+    """A TopicInfo with the limits the whitelist sets for it."""
+    return TopicInfo(name, relative, msg_type, set(kinds), *whitelist.topic_limits(robot, relative))
 
 
 def _valid(relative, msg_type):
@@ -91,14 +119,11 @@ def robots_from_graph(graph_topics, whitelist, only=None):
             continue
         if not whitelist.robot_allowed(robot):
             continue
-        listed = whitelist.topic_kinds(robot, relative)
-        kinds = set()
-        if "subscriber" in listed and has_pub:
-            kinds.add("subscriber")
-        if "publisher" in listed:
-            kinds.add("publisher")
+        kinds = mapped_kinds(whitelist, robot, relative, msg_type)
+        if not has_pub:
+            kinds.discard("subscriber")
         if kinds and _valid(relative, msg_type):
-            robots.setdefault(robot, {})[relative] = TopicInfo(topic, relative, msg_type, kinds)
+            robots.setdefault(robot, {})[relative] = topic_info(whitelist, robot, topic, relative, msg_type, kinds)
     return robots
 
 
@@ -109,7 +134,8 @@ def robot_from_rcm(robot, info, whitelist):
     rcm_driver's "type" is the ROS point of view (rcm/README.md): a topic some node publishes is one FIROS
     forwards to the broker ("subscriber" from the broker's point of view), and the other way round.
     Topic names are made relative to the robot's namespace when they are under it. When some whitelist entry
-    matches the robot, it filters the topics as usual; otherwise every topic rcm_driver reported is mapped.
+    matches the robot, it filters the topics as usual; otherwise every topic rcm_driver reported is mapped, but
+    images and point clouds never (they need an entry naming them).
     """
     topics = {}
     filtered = whitelist.robot_allowed(robot)
@@ -126,11 +152,12 @@ def robot_from_rcm(robot, info, whitelist):
         if relative.startswith(robot + "/"):
             relative = relative[len(robot) + 1:]
         kind = ROS_TO_BROKER_KIND[kind]
-        if filtered and kind not in whitelist.topic_kinds(robot, relative):
-            continue
         if not _valid(relative, msg):
             continue
         msg_type = attribute_type_to_message_type(msg)
-        info_entry = topics.setdefault(relative, TopicInfo(full, relative, msg_type, set()))
+        listed = whitelist.topic_kinds(robot, relative) if filtered else {kind}
+        if kind not in mapped_kinds(whitelist, robot, relative, msg_type, listed):
+            continue
+        info_entry = topics.setdefault(relative, topic_info(whitelist, robot, full, relative, msg_type, ()))
         info_entry.kinds.add(kind)
     return topics

@@ -18,6 +18,14 @@ Public API
     workspace); the Python form ``"pkg.msg.Type"`` that NGSI attribute types carry is accepted too. Only ROS
     package names that have a ``msg`` sub-package are imported, so a name from outside never imports an arbitrary
     Python module.
+``SerializedMessage(msg_class, data)``
+    A message as it came off the wire (rospy's ``AnyMsg`` buffer): ``size`` in bytes, ``message()`` deserializes
+    it only when it is wanted.
+``json_size_lower_bound(msg_class, data) -> int``
+    A number of bytes the compact JSON of ``message_to_dict`` of the message serialized in ``data`` is certain to
+    reach (UTF-8, no spaces), reckoned from the type's layout and the lengths the serialization holds, without
+    deserializing: a message far too big for a broker is refused without being converted. See "Size without
+    converting" below.
 ``ConversionError`` (a ``ValueError``)
     Raised for every problem; ``str()`` names the root type and the dotted path of the field, e.g.
     ``geometry_msgs/Twist.linear.x: expected float, got str``. Attributes ``root_type``, ``path``, ``problem``.
@@ -48,6 +56,19 @@ exact for every value, NaN included. ``null`` for a float, an integral float for
 binary data are accepted on the way in only (the asymmetric cases); ``header.stamp`` is a plain ``time`` and is
 never filled in with the current time. A ``string`` field that holds ``bytes`` (possible in hand-made messages)
 is decoded as UTF-8 with undecodable bytes replaced.
+
+Size without converting
+-----------------------
+``json_size_lower_bound`` reads only what the serialization says about sizes: it walks the fields in order,
+taking scalars by their size, and reading the length of each string and array (a ``uint8[]`` of n bytes gives
+4*ceil(n/3) bytes of base64, an ``int8[]`` of n numbers at least 2n-1 bytes, a string of n bytes at least n+2,
+every field its key); an array of messages of variable size is walked element by element. Where the walk cannot
+go on it counts nothing more, and a second reckoning needs no walk at all: the serialized bytes split into a part
+whose size the type fixes (scalars outside arrays, fixed arrays of fixed-size primitives, the 4-byte length of each
+string and variable array outside arrays), which may give as little as nothing in JSON, and the rest, of which
+every byte gives at least a known number of JSON bytes (a string's or an ``int8[]``'s content byte one, a
+``uint8[]`` byte 4/3, a ``float64`` element 3/8, an ``int64`` element 1/8, ...). The bound is the larger of the
+two. JSON keys, ``firosstamp`` and every NGSI encoding only add to it.
 """
 
 import base64
@@ -57,13 +78,15 @@ import importlib.util
 import math
 import os
 import re
+import struct
 
 import genpy
 import genpy.message
 
 from include.ngsi_encoding import NgsiEncodingError, attribute_type_to_message_type
 
-__all__ = ["ConversionError", "message_to_dict", "dict_to_message", "load_message_class"]
+__all__ = ["ConversionError", "message_to_dict", "dict_to_message", "load_message_class", "SerializedMessage",
+           "json_size_lower_bound"]
 
 
 class ConversionError(ValueError):
@@ -472,3 +495,184 @@ _FROM_JSON = {
     "time": _time_from_json,
     "message": _nested_from_json,
 }
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Size without converting
+# ---------------------------------------------------------------------------------------------------------------
+
+# Serialized bytes of each fixed-size primitive, and the fewest JSON bytes message_to_dict's value gives for it.
+_SERIALIZED_SIZE = {"bool": 1, "int8": 1, "byte": 1, "uint8": 1, "char": 1, "int16": 2, "uint16": 2,
+                    "int32": 4, "uint32": 4, "float32": 4, "int64": 8, "uint64": 8, "float64": 8,
+                    "time": 8, "duration": 8}
+_MIN_JSON = {"bool": 4, "float32": 3, "float64": 3, "time": 20, "duration": 20}    # others: one digit
+_LENGTH_PREFIX = 4          # uint32 before every string and variable array
+_LENGTH_RATIO = 2 / 4       # inside an array: a 4-byte length gives at least "" or []
+_TEXT_RATIO = 1.0           # a string's content byte gives at least one JSON byte
+_BASE64_RATIO = 4 / 3       # uint8[] / char[] content
+_NO_VARIABLE_PART = float("inf")
+
+
+def _scalar_ratio(base):
+    return _MIN_JSON.get(base, 1) / _SERIALIZED_SIZE[base]
+
+
+@functools.lru_cache(maxsize=None)
+def _layout(cls, inside_array):
+    """(fixed bytes, smallest JSON bytes per other byte) of a message class. ``inside_array``: its bytes all
+    belong to an array element (nothing is fixed; scalars and lengths count by their ratios)."""
+    fixed, ratio = 0, _NO_VARIABLE_PART
+    for field_type in cls._slot_types:
+        base, kind, is_array, length = _parse_field_type(field_type)
+        if kind == "message":
+            try:
+                element = _element_class(base, _Context(cls._type, load_message_class), "")
+            except ConversionError:
+                return 0, 0.0                      # an unknown nested type: no bound at all
+            nested_fixed, nested_ratio = _layout(element, inside_array or is_array)
+            if not is_array:
+                fixed += nested_fixed
+            elif length is None:
+                fixed, ratio = (fixed + _LENGTH_PREFIX, ratio) if not inside_array else \
+                    (fixed, min(ratio, _LENGTH_RATIO))
+            ratio = min(ratio, nested_ratio)
+            continue
+        binary = is_array and base in _BINARY_ELEMENT_TYPES
+        if base == "string":
+            if inside_array or is_array:
+                ratio = min(ratio, _LENGTH_RATIO, _TEXT_RATIO)
+            else:
+                fixed += _LENGTH_PREFIX
+                ratio = min(ratio, _TEXT_RATIO)
+            if is_array and length is None and not inside_array:
+                fixed += _LENGTH_PREFIX
+            continue
+        if is_array and length is None:            # a variable array: its length, then its elements
+            if inside_array:
+                ratio = min(ratio, _LENGTH_RATIO)
+            else:
+                fixed += _LENGTH_PREFIX
+            ratio = min(ratio, _BASE64_RATIO if binary else _scalar_ratio(base))
+        elif inside_array:                         # a scalar or fixed array inside an array element
+            ratio = min(ratio, _BASE64_RATIO if binary else _scalar_ratio(base))
+        else:                                      # a scalar or fixed array of scalars at a fixed place
+            fixed += _SERIALIZED_SIZE[base] * (length or 1)
+    return fixed, ratio
+
+
+def json_size_lower_bound(msg_class, data):
+    """Bytes the compact JSON of the message of ``msg_class`` serialized in ``data`` is certain to reach (see
+    "Size without converting" in the module docstring); 0 when nothing can be said."""
+    fixed, ratio = _layout(msg_class, False)
+    by_ratio = 0 if ratio == _NO_VARIABLE_PART else max(0, int((len(data) - fixed) * ratio))
+    walk = _Walk(data)
+    try:
+        by_walk = walk.message(msg_class)
+    except _WalkEnd:
+        by_walk = walk.bound
+    return max(by_ratio, by_walk)
+
+
+class _WalkEnd(Exception):
+    """The walk cannot go on (a type it cannot load, or bytes that end early)."""
+
+
+_LENGTH = struct.Struct("<I")
+_WALK_BUDGET = 4096         # fields and array elements a walk visits at most: it must stay far cheaper than converting
+
+
+class _Walk:
+    """Walks a serialization by the lengths it holds, adding up the JSON bytes each field is sure to give; stops
+    (keeping what it has) after _WALK_BUDGET fields or elements of arrays of strings or messages."""
+
+    def __init__(self, data):
+        self.data = data
+        self.offset = 0
+        self.bound = 0
+        self.budget = _WALK_BUDGET
+
+    def _spend(self, count):
+        self.budget -= count
+        if self.budget < 0:
+            raise _WalkEnd()
+
+    def _skip(self, count):
+        self.offset += count
+        if self.offset > len(self.data):
+            raise _WalkEnd()
+
+    def _length(self):
+        start = self.offset
+        self._skip(4)
+        return _LENGTH.unpack_from(self.data, start)[0]
+
+    def message(self, cls):
+        """Walk one message; returns the bound so far (also left in ``self.bound`` when the walk ends early)."""
+        self._spend(len(cls.__slots__))
+        self.bound += 2 + max(0, len(cls.__slots__) - 1)            # braces and commas
+        for name, field_type in zip(cls.__slots__, cls._slot_types):
+            self.bound += len(name) + 3                             # "name":
+            base, kind, is_array, length = _parse_field_type(field_type)
+            if is_array:
+                self._array(base, kind, length)
+            elif kind == "message":
+                self.message(self._class(base))
+            elif base == "string":
+                size = self._length()
+                self._skip(size)
+                self.bound += size + 2
+            else:
+                self._skip(_SERIALIZED_SIZE[base])
+                self.bound += _MIN_JSON.get(base, 1)
+        return self.bound
+
+    def _array(self, base, kind, length):
+        count = self._length() if length is None else length
+        if base in _BINARY_ELEMENT_TYPES:
+            self._skip(count)
+            self.bound += 2 + 4 * ((count + 2) // 3)                # base64 in quotes
+            return
+        self.bound += 2 + max(0, count - 1)                         # brackets and commas
+        if base in _SERIALIZED_SIZE:
+            self._skip(count * _SERIALIZED_SIZE[base])
+            self.bound += count * _MIN_JSON.get(base, 1)
+            return
+        cls = self._class(base) if kind == "message" else None
+        for _ in range(count):
+            self._spend(1)
+            if cls is None:
+                size = self._length()
+                self._skip(size)
+                self.bound += size + 2
+            else:
+                self.message(cls)
+
+    def _class(self, base):
+        try:
+            return load_message_class(base)
+        except ConversionError:
+            raise _WalkEnd() from None
+
+
+class SerializedMessage:
+    """A message of ``msg_class`` still in its ROS serialization ``data`` (bytes-like)."""
+
+    __slots__ = ("msg_class", "data")
+
+    def __init__(self, msg_class, data):
+        self.msg_class = msg_class
+        self.data = data
+
+    @property
+    def size(self):
+        return len(self.data)
+
+    def message(self):
+        """The deserialized message; ConversionError when the bytes are not one of ``msg_class``."""
+        data = self.data if isinstance(self.data, bytes) else bytes(self.data)
+        try:
+            return self.msg_class().deserialize(data)
+        except (genpy.DeserializationError, struct.error, UnicodeDecodeError, ValueError, TypeError,
+                IndexError) as exc:
+            raise ConversionError(self.msg_class._type, "", "cannot deserialize %d bytes: %s"
+                                  % (len(data), exc)) from None

@@ -1,10 +1,13 @@
 """ROS topic handling for FIROS: the rospy Subscribers that feed the sender and the Publishers that carry broker
 commands into ROS, per robot, plus the message "structure" shown by `GET /robots`.
 
-Owns every rospy Subscriber/Publisher FIROS makes for robots. Subscriber callbacks only hand the message to the
-sender (no conversion, no I/O). A Publisher created for a topic that nobody uses yet is latched, so that a
-subscriber arriving a moment later (`rostopic echo`) still gets the command; for a topic with known subscribers,
-the first publish waits (briefly) until they are connected, since rospy drops messages published before that.
+Owns every rospy Subscriber/Publisher FIROS makes for robots. Subscribers take messages as rospy delivers them
+undeserialized (`rospy.AnyMsg`): the callback only hands the bytes to the sender (no deserialization, no conversion,
+no I/O), so a message the sender skips (a newer one came, a rate limit, too big for the broker) costs nothing, and
+its size is known before anything is converted. A Publisher created for a topic that nobody uses yet is latched, so
+that a subscriber arriving a moment later (`rostopic echo`) still gets the command; for a topic with known
+subscribers, the first publish waits (briefly) until they are connected, since rospy drops messages published before
+that.
 """
 
 import logging
@@ -15,7 +18,7 @@ import rosgraph
 import rospy
 
 from include.ngsi_encoding import message_type_to_attribute_type
-from include.ros_conversion import load_message_class
+from include.ros_conversion import SerializedMessage, load_message_class
 
 log = logging.getLogger("firos.topics")
 
@@ -58,14 +61,14 @@ class TopicHandler:
     def __init__(self, sender):
         self.sender = sender
         self._lock = threading.Lock()
-        self._subscribers = {}   # robot -> {topic: rospy.Subscriber}
+        self._subscribers = {}   # robot -> {topic: (rospy.Subscriber, msg_type)}
         self._publishers = {}    # topic -> (robot, rospy.Publisher, msg_type, fresh)
 
     def subscribe(self, robot, info):
         """Forward messages of ``info`` (a TopicInfo) to the broker as attribute ``info.attribute``."""
         with self._lock:
             current = self._subscribers.get(robot, {}).get(info.name)
-            if current is not None and current.type == info.msg_type:
+            if current is not None and current[1] == info.msg_type:
                 return False
         if current is not None:
             self.unsubscribe(robot, info.name)       # the topic changed type: subscribe with the new one
@@ -73,12 +76,14 @@ class TopicHandler:
         attr, atype = info.attribute, message_type_to_attribute_type(info.msg_type)
         offer = self.sender.offer
 
-        def callback(msg):
-            offer(robot, attr, atype, msg)
+        def callback(raw):
+            if raw._connection_header.get("md5sum") not in (cls._md5sum, "*"):
+                return                               # another type now: discovery subscribes again
+            offer(robot, attr, atype, SerializedMessage(cls, raw._buff))
 
-        sub = rospy.Subscriber(info.name, cls, callback, queue_size=10)
+        sub = rospy.Subscriber(info.name, rospy.AnyMsg, callback, queue_size=10)
         with self._lock:
-            self._subscribers.setdefault(robot, {})[info.name] = sub
+            self._subscribers.setdefault(robot, {})[info.name] = (sub, info.msg_type)
         log.info("forwarding %s (%s) to the broker as %s.%s", info.name, info.msg_type, robot, attr)
         return True
 
@@ -118,9 +123,9 @@ class TopicHandler:
     def unsubscribe(self, robot, topic):
         """Stop forwarding ``topic`` of ``robot`` (no-op when FIROS does not subscribe to it)."""
         with self._lock:
-            sub = self._subscribers.get(robot, {}).pop(topic, None)
-        if sub is not None:
-            sub.unregister()
+            entry = self._subscribers.get(robot, {}).pop(topic, None)
+        if entry is not None:
+            entry[0].unregister()
             log.info("no longer forwarding %s of %s", topic, robot)
 
     def drop_publisher(self, topic):
@@ -135,11 +140,7 @@ class TopicHandler:
             subs = self._subscribers.pop(robot, {})
             pubs = [t for t, entry in self._publishers.items() if entry[0] == robot]
             pub_objs = [self._publishers.pop(t)[1] for t in pubs]
-        for sub in subs.values():
+        for sub, _ in subs.values():
             sub.unregister()
         for pub in pub_objs:
             pub.unregister()
-
-    def subscribed_topics(self, robot):
-        with self._lock:
-            return set(self._subscribers.get(robot, {}))

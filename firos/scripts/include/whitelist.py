@@ -2,8 +2,13 @@
 
 Format: {"<robot regex>": {"publisher": [topic regexes], "subscriber": [topic regexes]}}, from the broker's
 point of view: publisher = broker → ROS, subscriber = ROS → broker. Robot names and topic names (relative to
-the robot's namespace, e.g. "move_base/goal") must match a regex entirely (re.fullmatch). Owns validation,
-matching and the in-memory edits of the HTTP API (write merges, remove deletes, restore reloads the file).
+the robot's namespace, e.g. "move_base/goal") must match a regex entirely (re.fullmatch). A subscriber entry may
+also be an object naming limits for the topics it matches: {"topic": "<regex>", "max_rate": <per second>,
+"max_size": <bytes>} (both optional; where several entries match, the smallest of each counts). An entry whose
+pattern is the topic's own name, with no regex characters, "names it plainly" (`names_plainly`): the rule for
+images and point clouds (`discovery.LARGE_MESSAGE_TYPES`). Owns validation, matching, limits and the in-memory
+edits of the HTTP API (write merges, an entry replacing the one with the same pattern; remove deletes the entries
+with the given patterns; restore reloads the file).
 
 Python's `re` backtracks, and there is no `re2` in Debian to swap in, so a pattern is accepted only in shapes
 whose matching cost stays small (docs/SECURITY.md, "FIROS"): at most MAX_PATTERN characters, no backreferences,
@@ -28,6 +33,7 @@ except ImportError:                         # older Pythons name them sre_consta
 from include.config import ConfigError, read_json
 
 KINDS = ("publisher", "subscriber")
+LIMIT_KEYS = ("max_rate", "max_size")
 MAX_PATTERN = 256
 MAX_NAME = 256       # robot and topic names longer than this match nothing
 MAX_COST = (MAX_NAME + 1) ** 2   # the product of the repetitions' widths: two open-ended ones at most
@@ -60,12 +66,39 @@ def validate(data):
         clean[robot] = {}
         for kind in KINDS:
             topics = entry.get(kind, [])
-            if not isinstance(topics, list) or not all(isinstance(t, str) for t in topics):
+            if not isinstance(topics, list):
                 raise WhitelistError(f"\"{robot}\".{kind} must be a list of topic regexes (strings)")
-            for topic in topics:
-                _compile(topic, f"topic regex {topic!r} of \"{robot}\".{kind}")
-            clean[robot][kind] = list(topics)
+            clean[robot][kind] = [_entry(topic, robot, kind) for topic in topics]
     return clean
+
+
+def _entry(topic, robot, kind):
+    """A validated topic entry: a regex (str), or for subscriber topics {"topic", "max_rate", "max_size"}."""
+    where = f"\"{robot}\".{kind}"
+    if isinstance(topic, dict) and kind == "subscriber":
+        unknown = set(topic) - {"topic"} - set(LIMIT_KEYS)
+        if unknown or not isinstance(topic.get("topic"), str):
+            raise WhitelistError(f"an entry of {where} given as an object needs \"topic\" (a regex) and may have "
+                                 f"\"max_rate\" and \"max_size\", nothing else")
+        rate, size = topic.get("max_rate"), topic.get("max_size")
+        if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate > 0):
+            raise WhitelistError(f"max_rate of {topic['topic']!r} in {where} must be a number of messages per "
+                                 f"second above zero, not {rate!r}")
+        if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
+            raise WhitelistError(f"max_size of {topic['topic']!r} in {where} must be a whole number of bytes, "
+                                 f"not {size!r}")
+        _compile(topic["topic"], f"topic regex {topic['topic']!r} of {where}")
+        return dict(topic)
+    if not isinstance(topic, str):
+        raise WhitelistError(f"{where} must be a list of topic regexes (strings)"
+                             + ("; limits (objects) are for subscriber topics" if isinstance(topic, dict) else ""))
+    _compile(topic, f"topic regex {topic!r} of {where}")
+    return topic
+
+
+def pattern_of(entry):
+    """The topic regex of a whitelist entry (a str, or an object's "topic")."""
+    return entry["topic"] if isinstance(entry, dict) else entry
 
 
 def _compile(pattern, what):
@@ -153,7 +186,8 @@ class Whitelist:
 
     def _set(self, clean):
         self._data = clean
-        self._compiled = [(re.compile(robot), {k: [re.compile(t) for t in entry.get(k, [])] for k in KINDS})
+        self._compiled = [(re.compile(robot), {k: [(re.compile(pattern_of(t)), t) for t in entry.get(k, [])]
+                                               for k in KINDS})
                           for robot, entry in clean.items()]
 
     def snapshot(self):
@@ -168,9 +202,13 @@ class Whitelist:
             for robot, entry in clean.items():
                 target = merged.setdefault(robot, {k: [] for k in KINDS})
                 for kind in KINDS:
+                    listed = target.setdefault(kind, [])
                     for topic in entry.get(kind, []):
-                        if topic not in target.setdefault(kind, []):
-                            target[kind].append(topic)
+                        same = [i for i, t in enumerate(listed) if pattern_of(t) == pattern_of(topic)]
+                        if same:
+                            listed[same[0]] = topic
+                        else:
+                            listed.append(topic)
             self._set(merged)
 
     def remove(self, data):
@@ -185,7 +223,8 @@ class Whitelist:
                     del merged[robot]
                     continue
                 for kind in KINDS:
-                    merged[robot][kind] = [t for t in merged[robot].get(kind, []) if t not in entry.get(kind, [])]
+                    gone = {pattern_of(t) for t in entry.get(kind, [])}
+                    merged[robot][kind] = [t for t in merged[robot].get(kind, []) if pattern_of(t) not in gone]
                 if not any(merged[robot].get(k) for k in KINDS):
                     del merged[robot]
             self._set(merged)
@@ -197,7 +236,7 @@ class Whitelist:
             return False
         with self._lock:
             configured = self._configured       # replaced whole on restore, never changed in place
-        return any(topic in entry.get(kind, []) and re.fullmatch(robot_rx, robot)
+        return any(topic in map(pattern_of, entry.get(kind, [])) and re.fullmatch(robot_rx, robot)
                    for robot_rx, entry in configured.items())
 
     def robot_allowed(self, robot):
@@ -209,13 +248,32 @@ class Whitelist:
     def topic_kinds(self, robot, topic):
         """The set of kinds ("publisher", "subscriber") under which ``topic`` (relative name) is listed."""
         kinds = set()
-        if len(robot) > MAX_NAME or len(topic) > MAX_NAME:
-            return kinds
-        with self._lock:
-            for rx, topics in self._compiled:
-                if not rx.fullmatch(robot):
-                    continue
-                for kind in KINDS:
-                    if any(t.fullmatch(topic) for t in topics[kind]):
-                        kinds.add(kind)
+        for kind, _ in self._matching(robot, topic):
+            kinds.add(kind)
         return kinds
+
+    def names_plainly(self, robot, topic):
+        """The set of kinds under which an entry names ``topic`` plainly: its pattern is the topic's own name
+        with no regex characters (``camera/image_raw``, not ``camera/.*``)."""
+        if not _PLAIN_TOPIC.fullmatch(topic):
+            return set()
+        return {kind for kind, entry in self._matching(robot, topic) if pattern_of(entry) == topic}
+
+    def topic_limits(self, robot, topic):
+        """(max_rate or None, max_size or None) of a subscriber topic: the smallest that matching entries set."""
+        limits = {key: None for key in LIMIT_KEYS}
+        for kind, entry in self._matching(robot, topic):
+            if kind == "subscriber" and isinstance(entry, dict):
+                for key in LIMIT_KEYS:
+                    if entry.get(key) is not None:
+                        limits[key] = entry[key] if limits[key] is None else min(limits[key], entry[key])
+        return limits["max_rate"], limits["max_size"]
+
+    def _matching(self, robot, topic):
+        """[(kind, entry)] of the entries whose robot regex matches ``robot`` and topic regex ``topic``."""
+        if len(robot) > MAX_NAME or len(topic) > MAX_NAME:
+            return []
+        with self._lock:
+            compiled = self._compiled
+        return [(kind, entry) for rx, topics in compiled if rx.fullmatch(robot)
+                for kind in KINDS for topic_rx, entry in topics[kind] if topic_rx.fullmatch(topic)]

@@ -3,16 +3,13 @@ JSON dumps/loads, compare) over real message classes, the asymmetric cases, and 
 
 import io
 import json
-import os
 import sys
 
 import genpy
 import genpy.dynamic
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "firos", "scripts"))
-
-from include import ros_conversion as rc  # noqa: E402
+from include import ros_conversion as rc
 
 # A message with the field kinds no installed package has (char[], fixed uint8/char arrays, time[], byte[],
 # fixed arrays of messages), generated from its text as rosbag does; its element classes come from a loader.
@@ -399,3 +396,15 @@ def test_a_failed_fill_leaves_nothing_behind():
     with pytest.raises(rc.ConversionError):
         rc.dict_to_message({"linear": {"x": 1.0, "y": "bad"}}, Twist)
     assert Twist().linear.x == 0.0
+
+
+def test_the_size_walk_stops_within_its_budget_and_stays_a_lower_bound():
+    from visualization_msgs.msg import Marker, MarkerArray
+    markers = MarkerArray(markers=[Marker(ns="n%d" % i, text="é" * 3) for i in range(3000)])
+    buffer = io.BytesIO()
+    markers.serialize(buffer)
+    walk = rc._Walk(buffer.getvalue())
+    with pytest.raises(rc._WalkEnd):
+        walk.message(MarkerArray)                  # 3000 markers of 14 fields: more than the walk visits
+    real = len(json.dumps(rc.message_to_dict(markers), separators=(",", ":"), ensure_ascii=False).encode())
+    assert 0 < walk.bound <= rc.json_size_lower_bound(MarkerArray, buffer.getvalue()) <= real

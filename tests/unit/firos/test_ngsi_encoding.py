@@ -3,15 +3,11 @@ lenient decoding, attribute and type naming, firosstamp, and the whole path from
 
 import io
 import json
-import os
-import sys
 
 import pytest
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "firos", "scripts"))
-
-from include import ngsi_encoding as ne  # noqa: E402
-from include import ros_conversion as rc  # noqa: E402
+from include import ngsi_encoding as ne
+from include import ros_conversion as rc
 
 SEED_V1_VALUE = "{%27firosstamp%27: 1443020619.58971, %27data%27: %27test%27}"
 SEED_UPDATE_VALUE = "{%27data%27: %2712345%27}"

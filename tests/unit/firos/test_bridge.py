@@ -4,18 +4,12 @@ written back once a command is taken, whitelist edits on robots already mapped, 
 NGSI-LD entity ids.
 """
 
-import os
-import sys
-
 import pytest
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "firos", "scripts"))
-
-from include.bridge import ApiError, Firos  # noqa: E402
-from include.config import Settings  # noqa: E402
-from include.ngsi_client import NgsiClient  # noqa: E402
-from include.whitelist import Whitelist  # noqa: E402
+from include.bridge import ApiError, Firos
+from include.config import Settings
+from include.ngsi_versions import client_for
+from include.whitelist import Whitelist
 
 
 class FakeSender:
@@ -31,6 +25,9 @@ class FakeSender:
 
     def forget(self, robot, attr):
         self.calls.append(("forget", robot, attr))
+
+    def set_limits(self, robot, attr, max_rate, max_size):
+        self.calls.append(("limits", robot, attr, max_rate, max_size))
 
     def command_taken(self, robot):
         self.calls.append(("taken", robot))
@@ -100,7 +97,7 @@ def make(version="v2", whitelist=None, graph=None):
         "/bot/pose": ("geometry_msgs/Pose2D", True, False),
         "/bot/odom": ("geometry_msgs/Pose2D", True, False),
         "/bot/cmd": ("std_msgs/String", False, True)})
-    firos = Firos(settings, wl, {}, FakeSender(), FakeSubscriptions(), FakeTopics(), graph, NgsiClient(settings))
+    firos = Firos(settings, wl, {}, FakeSender(), FakeSubscriptions(), FakeTopics(), graph, client_for(settings))
     firos.scan()
     return firos
 
@@ -246,3 +243,16 @@ def test_an_ld_json_notification_with_context_members_is_read_like_any_other():
                               dict(body["data"][0]["cmd"])]          # several instances: the default one counts
     assert firos.handle_notification(body) == {"bot": ["cmd"]}
     assert firos.topics.published[0][2].data == "x"
+
+
+def test_whitelist_limits_reach_the_sender_and_an_image_needs_its_plain_name():
+    firos = make(whitelist={"bot": {"subscriber": [{"topic": "pose", "max_rate": 2}, ".*", "camera"]}},
+                 graph={"/bot/pose": ("geometry_msgs/Pose2D", True, False),
+                        "/bot/camera": ("sensor_msgs/Image", True, False),
+                        "/bot/other_camera": ("sensor_msgs/Image", True, False)})
+    assert ("limits", "bot", "pose", 2, None) in firos.sender.calls
+    assert set(firos.topics.subscribed) == {"/bot/pose", "/bot/camera"}
+    firos.whitelist_write({"bot": {"subscriber": [{"topic": "pose", "max_rate": 5, "max_size": 1000}]}})
+    assert ("limits", "bot", "pose", 5, 1000) in firos.sender.calls
+    firos.whitelist_remove({"bot": {"subscriber": ["camera"]}})        # ".*" alone does not map an image
+    assert set(firos.topics.subscribed) == {"/bot/pose"} and ("forget", "bot", "camera") in firos.sender.calls

@@ -56,19 +56,6 @@ def _complete(answer):
     return False
 
 
-def firos_pid(firos):
-    """The pid of FIROS's python process (rosrun execs it) in the child's process group."""
-    for entry in os.listdir("/proc"):
-        try:
-            if entry.isdigit() and os.getpgid(int(entry)) == firos.process.pid:
-                with open(f"/proc/{entry}/cmdline", "rb") as f:
-                    if b"core.py" in f.read():
-                        return int(entry)
-        except OSError:
-            continue
-    raise AssertionError("no FIROS process found")
-
-
 def threads_of(pid):
     return len(os.listdir(f"/proc/{pid}/task"))
 
@@ -173,7 +160,7 @@ def test_row4_whitelist_edits_from_web_pages_and_non_json_bodies_are_refused(sta
 # --- row 11: unknown names are never kept --------------------------------------------------------------------------
 
 def test_row11_300_disconnects_of_a_60kb_name_keep_nothing(stack):
-    pid = firos_pid(stack.firos)
+    pid = stack.firos.python_pid()
     name = "x" * 60_000
 
     def attack():
@@ -204,7 +191,7 @@ def test_row13_deeply_nested_json_is_a_400_and_firos_keeps_serving(stack, path):
 # --- row 12: slow clients ------------------------------------------------------------------------------------------
 
 def test_row12_400_slow_clients_get_no_thread_each_and_no_traceback(stack):
-    pid = firos_pid(stack.firos)
+    pid = stack.firos.python_pid()
     baseline = threads_of(pid)
     slow = []
     try:

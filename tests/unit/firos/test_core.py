@@ -1,0 +1,33 @@
+"""FIROS's `core.py` pieces that run without ROS: the notification address (interface or endpoint) and the
+addresses the HTTP API listens on."""
+
+import pytest
+
+import core
+from include import config as cfg
+from tests.support.firos import settings_for
+
+
+def test_notification_address_from_interface_or_endpoint(tmp_path):
+    settings = settings_for(tmp_path, 1026)
+    settings.endpoint_address, settings.endpoint_port = None, None
+    settings.interface = "lo"
+    assert core.notification_address(settings) == ("127.0.0.1", settings.server_port)
+    settings.interface = "public"                       # the address this machine uses towards the broker
+    assert core.notification_address(settings) == ("127.0.0.1", settings.server_port)
+    settings.interface = "nosuch0"
+    with pytest.raises(cfg.ConfigError, match="interface 'nosuch0' does not exist"):
+        core.notification_address(settings)
+    settings.endpoint_address, settings.endpoint_port = "203.0.113.3", 10101
+    assert core.notification_address(settings) == ("203.0.113.3", 10101)
+
+
+def test_default_listening_addresses(tmp_path, monkeypatch):
+    settings = settings_for(tmp_path, 1026, server={"port": 10100})
+    monkeypatch.delenv("ROS_IP", raising=False)
+    assert core.listen_addresses(settings, "127.0.0.1") == (["127.0.0.1"], [])
+    monkeypatch.setenv("ROS_IP", "198.51.100.1")
+    assert core.listen_addresses(settings, "203.0.113.10") == (["198.51.100.1"], ["203.0.113.10"])
+    assert core.listen_addresses(settings, "198.51.100.1") == (["198.51.100.1"], [])
+    configured = settings_for(tmp_path, 1026, server={"port": 10100, "address": ["0.0.0.0"]})
+    assert core.listen_addresses(configured, "203.0.113.10") == (["0.0.0.0"], [])
