@@ -65,6 +65,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 DOCUMENTS = (
     "docs/RDAPI.md",
     "docs/FIROS.md",
+    "docs/GUIDE.md",
 )
 
 VARYING_KEYS = ("firosstamp", "observedAt", "expiresAt", "notifiedAt", "modifiedAt", "createdAt")
