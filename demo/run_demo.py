@@ -141,10 +141,11 @@ def console_link(base_url, robot, topic="/pose"):
 
 
 def example_settings(host, master_home, ros_master_uri):
-    """The lines that let the examples of docs/RDAPI.md and docs/FIROS.md run as they are written, against this
-    demo, from this clone: the workspace overlay (firos, rcm, robotics_msgs, robotics_demo), ``MASTER`` (the
-    RDAPI's address), ``RCMP_HOME`` (the master's platform folder, for ``rcmp_n token``), ``ROS_MASTER_URI`` (the
-    robot's service space) and a PATH that finds this clone's ``rcmp_n`` and the system's ``python3`` (ROS's)."""
+    """The lines that let the examples of docs/GUIDE.md, docs/RDAPI.md and docs/FIROS.md run as they are written,
+    against this demo, from this clone: the workspace overlay (firos, rcm, robotics_msgs, robotics_demo),
+    ``MASTER`` (the RDAPI's address), ``RCMP_HOME`` (the master's platform folder, for ``rcmp_n token``),
+    ``ROS_MASTER_URI`` (the robot's service space) and a PATH that finds this clone's ``rcmp_n`` and the system's
+    ``python3`` (ROS's)."""
     overlay = os.path.join(ROOT, "build", "rcmp_ws", "devel", "setup.bash")
     exports = {"MASTER": host, "RCMP_HOME": master_home, "ROS_MASTER_URI": ros_master_uri}
     words = " ".join(f"{key}={shlex.quote(value)}" for key, value in exports.items())
@@ -158,7 +159,7 @@ def describe(base_url, master_home, robot_home):
     settings = "\n".join("  " + line for line in example_settings(host, master_home, uri or "http://127.0.0.1:11311/"))
     print(f"""
 The demo is running: master RDAPI at {base_url}, robot '{ROBOT_NAME}' on {ROBOT_ADDRESS}, paired.
-Look around with the seed guide's commands (public_ip_master is {host}):
+Look around with the original FIWARE Robotics guide's commands (public_ip_master is {host}; docs/GUIDE.md):
 
   curl http://{host}
   curl http://{host}/platform_instance/read
@@ -174,7 +175,8 @@ The robot's service space is a ROS master of its own{(' at ' + uri) if uri else 
 
   PATH=/usr/bin:$PATH ROS_MASTER_URI={uri or 'http://127.0.0.1:<port>/'} rostopic echo /pose
 
-To run the examples of docs/RDAPI.md and docs/FIROS.md as they are written, first paste in that terminal:
+To run the examples of docs/GUIDE.md, docs/RDAPI.md and docs/FIROS.md as they are written, first paste in
+another terminal:
 
 {settings}
 

@@ -84,7 +84,7 @@ def describe(p, robots, console):
     print(f"""
 The demo is running: the master's RDAPI on its eth0, {base} (VPN address 198.51.100.1), and two robots:
 {lines}
-The seed guide's commands, run from the office machine on the same LAN (public_ip_master is {p.master_address}):
+The original guide's commands, run from the office machine on the same LAN (public_ip_master is {p.master_address}):
 
   {run}curl {base}
   {run}curl {base}/platform_instance/read

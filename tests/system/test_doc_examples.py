@@ -5,9 +5,10 @@ Which pages: ``DOCUMENTS``. Which examples: the fenced blocks right after a mark
 GitHub does not show:
 
 - ``<!-- runnable -->``: the block runs. A block whose lines start with ``$ `` is a terminal session: each
-  ``$ `` line (with the lines it continues with a trailing ``\\``) is a command typed into one bash, so shell
-  variables carry from one command to the next (``TOKEN=$(...)``), and the lines up to the next command are the
-  output the page shows for it. A block without ``$ `` lines is a script, run in that bash with ``set -e``.
+  ``$ `` line (with the lines it continues with a trailing ``\\``, and the lines of a here-document it opens,
+  ``<<EOF`` up to the line ``EOF``) is a command typed into one bash, so shell variables carry from one command to
+  the next (``TOKEN=$(...)``), and the lines up to the next command are the output the page shows for it. A block
+  without ``$ `` lines is a script, run in that bash with ``set -e``.
 - ``<!-- runnable: eventually -->``: the same, for commands that read something that arrives by itself (an
   entity FIROS writes a moment after a message): each command runs again until its output is the one shown, for
   up to ``EVENTUALLY`` seconds. Only for commands that change nothing.
@@ -64,19 +65,21 @@ ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)
 DOCUMENTS = (
     "docs/RDAPI.md",
     "docs/FIROS.md",
+    "docs/GUIDE.md",
 )
 
 VARYING_KEYS = ("firosstamp", "observedAt", "expiresAt", "notifiedAt", "modifiedAt", "createdAt")
 EVENTUALLY = 30.0         # seconds an "eventually" command may take to show what the page shows
 COMMAND_TIMEOUT = 60.0    # seconds one command may run
 SYSTEM_PATH = "/usr/bin:/bin:/usr/sbin:/sbin"
-SHELL_NAMES = {"PATH", "PWD", "HOME", "TMPDIR"}
+SHELL_NAMES = {"PATH", "PWD", "HOME", "TMPDIR", "RANDOM"}
 
 MARKER = re.compile(r"^\s*<!--\s*(runnable(?:\s*:\s*(?P<options>[^>]*?))?|example settings)\s*-->\s*$")
 FENCE_OPEN = re.compile(r"^(?P<indent>\s*)```[\w-]*\s*$")
 FENCE_CLOSE = re.compile(r"^\s*```\s*$")
 BACKGROUND = re.compile(r"^background\s*,\s*port\s+(?P<name>[A-Z_][A-Z0-9_]*)$")
 HEADER_LINE = re.compile(r"^[A-Za-z0-9-]+: ")
+HEREDOC = re.compile(r"(?<!<)<<(?P<dash>-?)\s*(?P<quote>['\"]?)(?P<word>[A-Za-z_][A-Za-z0-9_]*)(?P=quote)")
 
 
 # -- reading the pages ---------------------------------------------------------------------------------------------
@@ -110,6 +113,8 @@ class Block:
                 text = line[2:]
                 while text.endswith("\\"):
                     text += "\n" + next(lines, "")
+                for heredoc in list(HEREDOC.finditer(text)):   # bash reads their lines in this order
+                    text += "\n" + self.here_document(lines, heredoc)
                 current = Command(text)
                 commands.append(current)
             elif current is None:
@@ -118,6 +123,15 @@ class Block:
             else:
                 current.expected.append(line)
         return commands
+
+    def here_document(self, lines, opened):
+        """The lines of the here-document ``opened`` (a match of ``HEREDOC``), its terminator line included."""
+        word, body = opened.group("word"), []
+        for line in lines:
+            body.append(line)
+            if (line.lstrip("\t") if opened.group("dash") else line) == word:
+                return "\n".join(body)
+        raise ValueError(f"{self.where}: the here-document <<{word} is not closed by a line '{word}'")
 
 
 def read_blocks(document):
@@ -432,6 +446,17 @@ def test_the_page_marks_runnable_examples_readably(document):
     for block in blocks:
         if block.kind != "settings":
             assert block.commands(), block.where
+
+
+def test_a_here_document_is_part_of_the_command_that_opens_it():
+    block = Block("page.md", 1, "run", ["$ cat <<EOF", "$ not a command", "EOF", "not a command",
+                                        "$ cat <<-'END' && tr a b <<<a", "\t$HOME", "\tEND", "$HOME", "b"])
+    commands = block.commands()
+    assert [c.text for c in commands] == ["cat <<EOF\n$ not a command\nEOF",
+                                          "cat <<-'END' && tr a b <<<a\n\t$HOME\n\tEND"]
+    assert [c.expected for c in commands] == [["not a command"], ["$HOME", "b"]]
+    with pytest.raises(ValueError, match="not closed"):
+        Block("page.md", 7, "run", ["$ cat <<EOF", "one"]).commands()
 
 
 @pytest.mark.slow
