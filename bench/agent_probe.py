@@ -4,20 +4,30 @@ garbage-collection pauses and, when asked, ``cProfile`` of the main thread (the 
 ``python3 -m bench.agent_probe [--profile] PREFIX AGENT_ARGS...`` runs ``rcm_platform``'s ``main(AGENT_ARGS)``
 (the same default reactor the agent installs). On SIGUSR1 a phase starts (its name read from ``PREFIX.phase``,
 which the benchmark writes first); on SIGUSR2 it ends and ``PREFIX-PHASE.json`` is written: ``lag`` (seconds
-each look at the loop, every ``LAG_EVERY`` s, came late) and ``gc`` (seconds each collection of the oldest
-generation took); with ``--profile`` also ``PREFIX-PHASE.prof`` (read it with ``pstats``). Threads (the SQLite
+each look at the loop, every ``LAG_EVERY`` s, came late), ``gc`` (seconds each collection of the oldest
+generation took), ``objects`` (objects the collector tracks, at the end) and ``stalls``: while the loop has not
+looked for ``STALL`` s, a thread samples the main thread's stack every ``STALL_EVERY`` s (the way a
+``faulthandler`` probe does), and ``stalls`` counts the samples by their innermost frames (a sample that found
+the lock held by a collection, or a C call, comes late and names what ran after it); with ``--profile`` also
+``PREFIX-PHASE.prof`` (read it with ``pstats``). Threads (the SQLite
 writes, ``deferToThread``) are not profiled: compare the process's CPU with its main thread's
 (``/proc/PID/task/PID/stat``). Generators (``inlineCallbacks``) count one call per resumption. The looks cost a
 few microseconds ten times a second.
 """
 
 import cProfile
+import collections
 import gc
 import json
 import sys
+import threading
 import time
+import traceback
 
 LAG_EVERY = 0.1
+STALL = 1.0          # seconds without a look at the loop that count as a stall
+STALL_EVERY = 0.2    # seconds between two samples of a stalled main thread
+STALL_FRAMES = 8     # innermost frames kept per sample
 
 
 class Probe:
@@ -30,6 +40,21 @@ class Probe:
         self.gc = []
         self._at = None
         self._gc_began = None
+        self.stalls = collections.Counter()
+        self.main_ident = threading.get_ident()
+
+    def watch_stalls(self):
+        """In a thread: sample the main thread's stack while its loop is stalled."""
+        while True:
+            time.sleep(STALL_EVERY)
+            at = self._at
+            if self.phase is None or at is None or time.monotonic() - at < STALL:
+                continue
+            frame = sys._current_frames().get(self.main_ident)
+            if frame is None:
+                continue
+            lines = traceback.format_stack(frame)[-STALL_FRAMES:]
+            self.stalls["".join(line.split("\n")[0].strip() + "\n" for line in lines)] += 1
 
     def look(self):
         now = time.monotonic()
@@ -52,6 +77,7 @@ class Probe:
         except OSError:
             self.phase = "run"
         self.lag, self.gc = [], []
+        self.stalls = collections.Counter()
         if self.profile_wanted:
             self.profile = cProfile.Profile()
             self.profile.enable()
@@ -62,7 +88,8 @@ class Probe:
             profile.disable()
             profile.dump_stats(f"{self.prefix}-{self.phase}.prof")
         with open(f"{self.prefix}-{self.phase}.json", "w") as f:
-            json.dump({"lag": self.lag, "gc": self.gc}, f)
+            json.dump({"lag": self.lag, "gc": self.gc, "objects": len(gc.get_objects()),
+                       "stalls": self.stalls.most_common(20)}, f)
         self.phase = None
 
 
@@ -76,6 +103,7 @@ def main(argv=None):
     signal.signal(signal.SIGUSR1, probe.start)
     signal.signal(signal.SIGUSR2, probe.stop)
     gc.callbacks.append(probe.collected)
+    threading.Thread(target=probe.watch_stalls, name="agent-probe", daemon=True).start()
     from twisted.internet import reactor, task
     loop = task.LoopingCall(probe.look)
     reactor.callWhenRunning(loop.start, LAG_EVERY)

@@ -38,6 +38,7 @@ import http.client
 import json
 import os
 import re
+import resource
 import signal
 import sys
 import tempfile
@@ -51,6 +52,7 @@ if ROOT not in sys.path:
 from bench.fleet_sim import Fleet, raise_nofile  # noqa: E402
 from bench.report import load_average, percentile, write_section  # noqa: E402
 from tests.support.polling import WaitTimeout, wait_until  # noqa: E402
+from tests.support.lifecycle import MASTER_HELLO  # noqa: E402
 from tests.support.processes import ProcessGroup  # noqa: E402
 from tests.support.rcmp_agent import RcmpAgent  # noqa: E402
 
@@ -255,12 +257,13 @@ class ConsoleClock:
                           message=f"the console to push {name}'s change")
 
     def all_paired_at(self, names, after, exclude=None):
-        """When the last of ``names`` was last pushed as paired (not on server ``exclude``), or None if one is not."""
+        """When the last of ``names`` was last pushed as paired (on a server other than ``exclude``, when given), or
+        None while one is not."""
         names = set(names)
         with self.lock:
             for name in names:
                 state = self.rows.get(name)
-                if not state or not (state[0] and state[1]) or (exclude and state[2] == exclude):
+                if not state or not (state[0] and state[1]) or (exclude and state[2] in (None, exclude)):
                     return None
             last = {}
             for at, who, state in self.changes:
@@ -306,7 +309,15 @@ class Run:
 
     # -- phases -------------------------------------------------------------------------------------------
     def setup(self):
-        self.master.start(timeout=60)
+        if self.args.master_nofile:   # the master inherits our soft limit: lower it for the start only
+            soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (min(self.args.master_nofile, hard), hard))
+            try:
+                self.master.start(timeout=60)
+            finally:
+                resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+        else:
+            self.master.start(timeout=60)
         self.pid = self.master.process.pid
         self.figures["nofile"] = open(f"/proc/{self.pid}/limits").read().split("Max open files")[1].split()[0]
         started = time.monotonic()
@@ -455,7 +466,9 @@ class Run:
         stats = self.fleet.stats()
         f = self.figures
         f["sim_losses"] = [x for x in stats["losses"] if x[1] in set(self.robots)]
-        ended = SESSION_ENDED.findall(self.master.log_text())
+        text = self.master.log_text()
+        f["master_hello"] = [float(m.group(2)) for m in MASTER_HELLO.finditer(text)]
+        ended = SESSION_ENDED.findall(text)
         f["master_ended"] = [(n, why) for n, why in ended if n not in self.left and not n.startswith("latbot")]
         f["counters"] = stats["counters"]
         f["sim_cpu"] = stats["cpu"]
@@ -484,8 +497,14 @@ def run_size(n, args):
                     phase()
                     continue
                 cpu, main_cpu = proc_cpu(run.pid), main_thread_cpu(run.pid)
-                with run.master.phase(phase.__name__, run.figures.setdefault("probe", {})):
-                    phase()
+                probes = run.figures.setdefault("probe", {})
+                try:
+                    with run.master.phase(phase.__name__, probes):
+                        phase()
+                finally:
+                    for stack, count in (probes.get(phase.__name__) or {}).get("stalls", [])[:3]:
+                        print(f"[fleet {n}] {phase.__name__}: the master's loop stalled here in {count} "
+                              f"samples:\n{stack}", flush=True)
                 run.figures.setdefault("threads", {})[phase.__name__] = (
                     proc_cpu(run.pid) - cpu, main_thread_cpu(run.pid) - main_cpu)
         except Exception as exc:   # a phase that cannot finish: say so in the report, measure the next N
@@ -587,6 +606,8 @@ def report(results, args):
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
 
     detail("all accepted (last hello answered)", lambda r: _s(r["accepted_all"]))
+    detail("hello answer inside the master (reading it → answering), p50 / p99",
+           lambda r: f"{_ms(_p(r['master_hello'], 0.5))} / {_ms(_p(r['master_hello'], 0.99))}")
     detail("connections the accept queue dropped while pairing (machine-wide)", lambda r: f"{r['listen_overflows']}")
     detail("connection attempts by the simulated robots / hellos refused",
            lambda r: f"{r['pair_counters'].get('connects', 0)} / "
@@ -619,8 +640,13 @@ def report(results, args):
            lambda r: f"{_ms(_p(r['probe']['steady']['lag'], 0.99))} / {_ms(max(r['probe']['steady']['lag']))}")
     detail("master event-loop lateness p99 / longest, failover",
            lambda r: f"{_ms(_p(r['probe']['failover']['lag'], 0.99))} / {_ms(max(r['probe']['failover']['lag']))}")
+    detail("master full garbage collections while pairing: count / total / longest",
+           lambda r: f"{len(r['probe']['pair_all']['gc'])} / {_s(sum(r['probe']['pair_all']['gc']))} / "
+                     f"{_ms(max(r['probe']['pair_all']['gc'] or [0]))}")
     detail("master full garbage collections, steady: count / longest",
            lambda r: f"{len(r['probe']['steady']['gc'])} / {_ms(max(r['probe']['steady']['gc'] or [0]))}")
+    detail("objects the master's garbage collector tracks, steady",
+           lambda r: f"{r['probe']['steady']['objects']:,}")
     detail("simulator event-loop lateness p99, pairing / steady",
            lambda r: f"{_ms(_p(r['pair_lag'], 0.99))} / {_ms(_p(r['lag'], 0.99))}")
     detail("simulator CPU-s (per worker)", lambda r: ", ".join(f"{c:.0f}" for c in r["sim_cpu"]))
@@ -691,6 +717,9 @@ def main(argv=None):
                         help="a key of the master's .init.cfg (repeatable), e.g. max_starting_spaces=80")
     parser.add_argument("--master-env", metavar="NAME=VALUE", action="append", default=[], type=_pair,
                         help="an environment variable of the master (repeatable)")
+    parser.add_argument("--master-nofile", type=int, metavar="N",
+                        help="the master's soft open-file limit (default: this process's, raised to its hard limit, "
+                             "as rcmpd raises it); e.g. 1024, a shell's usual limit")
     parser.add_argument("--profile", metavar="DIR", help="profile the master with cProfile: one file per N and phase in DIR")
     parser.add_argument("--keep-failed", metavar="DIR", help="copy a failed run's folder (logs, data) into DIR")
     parser.add_argument("--quick", action="store_true", help="N = 100 and 200 only, short windows (a smoke run)")
