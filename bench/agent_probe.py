@@ -3,14 +3,17 @@ garbage-collection pauses and, when asked, ``cProfile`` of the main thread (the 
 
 ``python3 -m bench.agent_probe [--profile] PREFIX AGENT_ARGS...`` runs ``rcm_platform``'s ``main(AGENT_ARGS)``
 (the same default reactor the agent installs). On SIGUSR1 a phase starts (its name read from ``PREFIX.phase``,
-which the benchmark writes first); on SIGUSR2 it ends and ``PREFIX-PHASE.json`` is written: ``lag`` (seconds
-each look at the loop, every ``LAG_EVERY`` s, came late), ``gc`` (seconds each collection of the oldest
-generation took), ``objects`` (objects the collector tracks, at the end) and ``stalls``: while the loop has not
-looked for ``STALL`` s, a thread samples the main thread's stack every ``STALL_EVERY`` s (the way a
-``faulthandler`` probe does), and ``stalls`` counts the samples by their innermost frames (a sample that found
-the lock held by a collection, or a C call, comes late and names what ran after it); with ``--profile`` also
-``PREFIX-PHASE.prof`` (read it with ``pstats``). Threads (the SQLite
-writes, ``deferToThread``) are not profiled: compare the process's CPU with its main thread's
+which the benchmark writes first); on SIGUSR2 it ends and ``PREFIX-PHASE.json`` is written:
+
+- ``lag``: seconds each look at the loop (every ``LAG_EVERY`` s) came late;
+- ``gc``: seconds each collection of the oldest generation took;
+- ``objects``: objects the collector tracks at the end, and ``kinds``, the most common types among them;
+- ``stalls``: while the loop has not looked for ``STALL`` s, a thread samples the main thread's stack every
+  ``STALL_EVERY`` s (the way a ``faulthandler`` probe does); the samples counted by their innermost frames (a
+  sample that found the interpreter held by a collection comes late and names what ran after it).
+
+With ``--profile`` also ``PREFIX-PHASE.prof`` (read it with ``pstats``). Threads (the SQLite writes,
+``deferToThread``) are not profiled: compare the process's CPU with its main thread's
 (``/proc/PID/task/PID/stat``). Generators (``inlineCallbacks``) count one call per resumption. The looks cost a
 few microseconds ten times a second.
 """
@@ -88,8 +91,11 @@ class Probe:
             profile.disable()
             profile.dump_stats(f"{self.prefix}-{self.phase}.prof")
         with open(f"{self.prefix}-{self.phase}.json", "w") as f:
-            json.dump({"lag": self.lag, "gc": self.gc, "objects": len(gc.get_objects()),
+            objects = gc.get_objects()
+            kinds = collections.Counter(type(o).__qualname__ for o in objects).most_common(15)
+            json.dump({"lag": self.lag, "gc": self.gc, "objects": len(objects), "kinds": kinds,
                        "stalls": self.stalls.most_common(20)}, f)
+            del objects
         self.phase = None
 
 
