@@ -411,6 +411,7 @@ def main(argv=None):
           else tempfile.TemporaryDirectory(prefix="bench-lifecycle-")) as tmp:
         procs = ProcessGroup(log_dir=tmp)
         plat = Platform(procs, os.path.join(tmp, "platform"), heartbeat=args.heartbeat)
+        load_before = load_average()
         try:
             floors = [floor_once(procs, tmp) for _ in range(args.runs)]
             plat.master.start()
@@ -425,6 +426,7 @@ def main(argv=None):
                 procs.stop_all()
             finally:
                 plat.kill_leftovers()
+    load_after = load_average()
 
     master_p50 = statistics.median(f[0] for f in floors)
     rosrun_p50 = statistics.median(f[1] for f in floors)
@@ -458,7 +460,8 @@ registrations, not for a fixed delay.
 
 Ratio to the floor: **{ratio:.2f}x** (target ≤ {TARGET_RATIO}x): {"met" if ok_a else "NOT met"}; single runs ranged
 {min(pair_times) / floor:.2f}x to {max(pair_times) / floor:.2f}x, so read a ratio near the target as borderline.
-Against the floor with `rosrun` (how this benchmark measured it before: its bash, `catkin_find` and `rospack`
+Load average (1 / 5 min) {load_before} at the start, {load_after} at the end (2 cores: above 2, other work
+shared the machine and every time above is longer). Against the floor with `rosrun` (how this benchmark measured it before: its bash, `catkin_find` and `rospack`
 cost about 0.2 CPU-s that the platform's nodes do not pay): {pair_p50 / floor_rosrun:.2f}x. The floor's node
 above is started the platform's way (`rcmp_command.NodeExecutables.direct_argv`: roslaunch's own lookup of the
 file rosrun would run, then one exec of it), without the platform's own wrappers (`setsid`, `setpriv`, `nice`),
