@@ -20,6 +20,7 @@ help:
 	@echo "make deps   - apt-get install the toolchain (idempotent, needs root)"
 	@echo "make build  - build the catkin workspace $(WS) (robotics_msgs, rcm, firos)"
 	@echo "make bench  - run the benchmarks and write docs/PERFORMANCE.md"
+	@echo "make bench-NAME - run one benchmark (bench/bench_NAME.py), e.g. make bench-fleet"
 	@echo "make dist   - build every distribution zip into dist/ (create_robotics_pkg)"
 
 deps:
@@ -47,6 +48,9 @@ demo-hosts: deps build
 
 bench: deps build
 	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all
+
+bench-%: deps build
+	bash scripts/with-overlay.sh $(PYTHON) -m bench.run_all $*
 
 dist:
 	for what in "" master robot firos rcm_driver robotics_msgs demo; do ./create_robotics_pkg $$what -o dist || exit 1; done

@@ -13,8 +13,8 @@ import re
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PERFORMANCE_MD = os.path.join(ROOT, "docs", "PERFORMANCE.md")
-HEADER = ("# Performance\n\nWritten by the benchmarks in `bench/` (`make bench` runs them all). Each section says "
-          "the machine and the date it was measured on; targets come from the issues.\n")
+HEADER = ("# Performance\n\nWritten by the benchmarks in `bench/` (`make bench` runs them all, `make bench-NAME` one "
+          "of them). Each section says the machine and the date it was measured on; targets come from the issues.\n")
 
 
 def percentile(values, fraction):
