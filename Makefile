@@ -1,5 +1,5 @@
 # Robotics (RCM + FIROS): developer entry points. Everything ROS-related runs with /usr/bin first on PATH
-# and /usr/bin/python3 (see ../shared/ENVIRONMENT.md, "The PATH trap").
+# and /usr/bin/python3 (README.md, "Working on it": the PATH trap).
 
 SHELL := /bin/bash
 PYTHON := /usr/bin/python3

@@ -16,7 +16,7 @@ HERE=$(cd "$(dirname "$0")" && pwd)
 PROG=install.sh
 if [ -f "$HERE/rcm_platform/rcmp_ext_connector.py" ]; then ROLE=master; else ROLE=robot; fi
 DEFAULT_PORTS="10100, 10101, 10102, 10103"
-DEFAULT_VPN_SUBNET=10.11.12.0/24   # the seed's example (CONTRACTS section 7)
+DEFAULT_VPN_SUBNET=10.11.12.0/24   # the original guide's example (docs/VPN.md)
 DEFAULT_VPN_PORT=1194
 COMPONENT_ZIPS=(firos.zip rcm_driver.zip robotics_msgs.zip)
 
@@ -35,7 +35,7 @@ EOF
                            (default yes when their zips are in this folder)
   --inbound-ports LIST     inbound open ports, comma separated (default "$DEFAULT_PORTS")
   --vpn yes|no             create the platform's own VPN (OpenVPN, 'rcmp_n vpn init') (default yes)
-  --no-vpn                 the same as --vpn no: the VPN is the administrator's, as in the seed
+  --no-vpn                 the same as --vpn no: the VPN is the administrator's, as in the original platform
   --vpn-subnet CIDR        the VPN's subnet; the master takes its first address (default $DEFAULT_VPN_SUBNET)
   --vpn-port N             the VPN's UDP port (default $DEFAULT_VPN_PORT)
   --vpn-remote HOST        the address robots reach the master at (default: the address of ext_interface)
@@ -54,7 +54,7 @@ EOF
   --start yes|no           start (or restart) the rcm daemon at the end (default yes)
   -n, --non-interactive    ask nothing: options, then the current configuration, then defaults
 
-(ext) configuration keys (written only when given; a re-run keeps the current ones):
+Optional configuration keys (written only when given; a re-run keeps the current ones):
   --vpn-interface IF  --vpn-address ADDRESS  --ic-port PORT  --ros-port-base PORT
   --ros-setup FILE|none    the ROS installation's setup script, for the workspace build, the agent and its
                            nodes (default: the first /opt/ros/*/setup.bash, noetic first; none: ROS is on the
@@ -66,7 +66,7 @@ EOF
     fi
     cat <<EOF
 
-(ext) installation places:
+Installation places:
   --home DIR               platform folder (default /opt/rcm-platform)
   --workspace DIR          catkin workspace (default ~/rcmp_ws)
   --service-name NAME      init script /etc/init.d/NAME (default rcmpd)
@@ -330,7 +330,7 @@ else
     ANS[replace_ws]=yes
 fi
 
-# (ext) keys: options first, then the current configuration; never asked
+# optional keys: options first, then the current configuration; never asked
 for key in vpn_interface vpn_address ic_port ros_port_base ext_interface ext_address ext_port ros_setup; do
     if [ -n "${OPT[$key]+set}" ]; then ANS[$key]=${OPT[$key]}; continue; fi
     case $key in

@@ -44,7 +44,7 @@ ROS_REPOSITORY_PACKAGES=(ros-core rosbash rospack rospy roslaunch rosmaster rosg
   rosparam std-msgs geometry-msgs sensor-msgs genpy genmsg catkin message-generation message-runtime roscpp)
 ROS_REPOSITORY_EXTRA=(python3-catkin-pkg cmake g++)
 # - a ROS set up by a script elsewhere (a source build): its packages are the administrator's; none installed here.
-# The agent's own needs and the tools the installer and the seed guide's checks use, the same names on Debian and
+# The agent's own needs and the tools the installer and the original guide's checks use, the same names on Debian and
 # Ubuntu. python3-twisted on every agent: our robot agent speaks the agent protocol through Twisted too
 # (docs/INSTALL.md); a robot needs nothing of the master's (no sqlite3 tool).
 AGENT_PACKAGES=(python3-twisted python3-netifaces python3-yaml python3-cryptography openvpn unzip iproute2)
@@ -238,7 +238,7 @@ do_install() {
     fi
     echo "Configured $home/$cfg_name"
 
-    # the platform's VPN (CONTRACTS section 7): HOME/vpn is root's alone (0700); the agent runs OpenVPN with it
+    # the platform's VPN (docs/VPN.md): HOME/vpn is root's alone (0700); the agent runs OpenVPN with it
     if [ -n "$vpn_subnet" ]; then
         if [ -e "$home/vpn/server.conf" ]; then
             echo "Kept the platform's VPN in $home/vpn"

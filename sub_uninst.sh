@@ -27,7 +27,7 @@ RCMP_BIN=/usr/local/bin/rcmp_n
 RCMP_HOME=/opt/rcm-platform
 RCMP_PYLIB=$(/usr/bin/python3 -c 'import site; print(site.getsitepackages()[0])')  # install.sh's default
 if [ ! -r "/etc/default/$SERVICE" ] && [ "$SERVICE" != rcmpd ]; then
-    # an (ext) installation's places are known only from its settings: never guess the standard ones
+    # an installation's places are known only from its settings: never guess the standard ones
     RCMP_BIN='' RCMP_HOME='' RCMP_PYLIB=''
     echo "$PROG: /etc/default/$SERVICE is missing: only the init script $SERVICE is removed" >&2
 elif [ -r "/etc/default/$SERVICE" ]; then

@@ -17,8 +17,8 @@ Usage: ./uninstall.sh [--service-name NAME] [--keep-workspace]
 Stops the rcm daemon and removes every file the installation placed (rcmp_n, the rcm_platform package, the
 platform folder with its configuration, data and logs, the init script, the catkin workspace). The package
 dependencies installed with apt-get are kept.
-  --service-name NAME   (ext) the init script name given to install.sh (default rcmpd)
-  --keep-workspace      (ext) leave the catkin workspace in place
+  --service-name NAME   the init script name given to install.sh (default rcmpd)
+  --keep-workspace      leave the catkin workspace in place
   -h, --help            this text
 USAGE
 }

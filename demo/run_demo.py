@@ -4,8 +4,9 @@ It starts an RCM master on 127.0.0.1 (RDAPI on ``--port``, default 8080 or the n
 named ``demo_robot`` on 127.0.0.2, both as real ``python3 -m rcm_platform`` agents with their own platform
 folders under ``--workdir``; provisions the ``demo_patrol`` service logic (the simulated robot ``sim_robot`` on
 the robot side, the ``patrol_brain`` that steers it on the server side) and the robot; waits until the robot is
-``paired``; then prints the seed guide's curl commands with the right address and the console's address. Ctrl-C (or SIGTERM) stops the
-robot agent, then the master, and checks that each agent's process group is gone.
+``paired``; then prints the original FIWARE Robotics guide's curl commands with the right address and the
+console's address. Ctrl-C (or SIGTERM) stops the robot agent, then the master, and checks that each agent's
+process group is gone.
 """
 
 import argparse

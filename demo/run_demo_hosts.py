@@ -8,7 +8,8 @@ plus an ``office`` machine for the person's curl commands. On the master ``rcmp_
 ``HOME/vpn/client.conf``. Every agent runs with its default configuration (``tun0``, ``eth0``, ports 80 and 9999,
 no address keys) and starts its own OpenVPN. The demo provisions the ``demo_patrol`` service logic (the simulated
 robot on the robot side, the brain that steers it on the server side) for both robots, waits until both are
-paired, and prints the seed guide's curl commands with the master's ``eth0`` address, run from the office machine.
+paired, and prints the original FIWARE Robotics guide's curl commands with the master's ``eth0`` address, run
+from the office machine.
 
 The master's RDAPI and console listen only inside the master's machine; so that this machine's browser can open
 the console, a loopback port here (``--console-port``, default 8080 or the next free one) is forwarded to the

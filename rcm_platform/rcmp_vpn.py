@@ -50,7 +50,7 @@ CLIENT_CONF = "client.conf"
 REGISTER = "issued.json"
 MANAGEMENT_SOCKET = "management.sock"
 SERVER_CN = "rcmp-vpn-server"         # not a valid instance name (a dash), so no robot can be issued it
-DEFAULT_SUBNET = "10.11.12.0/24"      # the seed's example
+DEFAULT_SUBNET = "10.11.12.0/24"      # the original guide's example
 DEFAULT_PORT = 1194
 CERT_DAYS = 3650
 CRL_DAYS = 3650                       # rewritten at every change; OpenVPN refuses everyone once it expires
@@ -251,7 +251,7 @@ def _tls_crypt_key():
 
 def _server_conf(network, port):
     return f"""\
-# The RCM platform's VPN server, written by 'rcmp_n vpn init' (CONTRACTS section 7; docs/VPN.md).
+# The RCM platform's VPN server, written by 'rcmp_n vpn init' (see docs/VPN.md in the platform's sources).
 # Paths are relative to this folder: run as  openvpn --cd {{this folder}} --config {SERVER_CONF}
 dev tun0
 dev-type tun
@@ -280,7 +280,7 @@ verb 3
 def _client_conf(remote, port, ca_pem, cert_pem, key_pem, tls_crypt, role):
     machine = "robot" if role == ROBOT else "server VM (robot=no)"
     return f"""\
-# The RCM platform's VPN, client side, written by 'rcmp_n vpn client' (CONTRACTS section 7; docs/VPN.md).
+# The RCM platform's VPN, client side, written by 'rcmp_n vpn client' (see docs/VPN.md in the platform's sources).
 # It holds this machine's private key: copy it only to HOME/vpn/client.conf (mode 0600) on its {machine}.
 # {ROLE_LINE}{role}
 client

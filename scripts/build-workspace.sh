@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Build the catkin workspace WS (default build/rcmp_ws) whose src/ links to this tree's catkin packages.
 # catkin_make is run with /usr/bin first on PATH and /usr/bin/python3, so that a pyenv python3 on PATH
-# (see ../shared/ENVIRONMENT.md) cannot break parse_package_xml.py, inside the ROS installation's setup script
-# when there is one.
+# (README.md, "Working on it": the PATH trap) cannot break parse_package_xml.py, inside the ROS installation's
+# setup script when there is one.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
 ws=${1:-build/rcmp_ws}

@@ -1,4 +1,4 @@
-/* The RCM platform console (CONTRACTS §9): plain JavaScript, no library, no other origin.
+/* The RCM platform console (docs/CONSOLE.md): plain JavaScript, no library, no other origin.
  *
  * State arrives pushed on one event stream (/console/api/events, Server-Sent Events read through fetch so that
  * an RDAPI token can go in the Authorization header): a "snapshot" first, then "patch"es with what changed.

@@ -228,8 +228,8 @@ def test_synthetic_tree_zips_leave_out_caches_tests_and_unlisted_files(tmp_path,
     assert "firos/config/config.json" in firos and "firos/scripts/include/ros/topicHandler.py" in firos
     assert rcm == EXPECTED["rcm_driver"][1] and msgs == EXPECTED["robotics_msgs"][1]
     # unlisted files are named, so their owners learn they are not shipped
-    assert "rcm_platform/rcmp_scratch.py is not in the seed's module list" in result.stderr
-    assert "firos/notes.txt is not in the seed's listing" in result.stderr
+    assert "rcm_platform/rcmp_scratch.py is not one of the modules the agent ships" in result.stderr
+    assert "firos/notes.txt is not in firos.zip's file list" in result.stderr
 
 
 def test_zip_is_reproducible_whatever_the_file_dates(tmp_path, tree):
