@@ -71,7 +71,9 @@ def test_a_map_over_the_limit_never_blocks_a_small_topic_and_is_said_once(tmp_pa
                 sender.offer("bot", "pose", POSE, serialized(Pose2D(x=float(i))))
             wait_until(lambda: (value(client, "pose") or {}).get("x") == float(i), timeout=10,
                        message=f"pose {i} in the broker beside the map")
-        stats = sender.snapshot_stats()
+        # the pose can be in the broker a moment before the sender has counted its batch
+        stats = wait_until(lambda: sender.snapshot_stats()["forwarded"] == 3 and sender.snapshot_stats(),
+                           message="the batch counted")
         assert stats["too_large"] == 3 and stats["forwarded"] == 3 and stats["errors"] == 0
         assert list(stats["too_large_values"]) == ["bot"] and list(stats["too_large_values"]["bot"]) == ["map"]
         assert stats["too_large_values"]["bot"]["map"]["count"] == 3
