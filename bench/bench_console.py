@@ -7,7 +7,7 @@ write of the robotics data) and removes it again. Each change is timed from just
 moment the page's DOM shows it (a MutationObserver in the page notes ``Date.now()``; the benchmark and the browser
 read the same clock). Beside that, a plain event-stream client (``/console/api/events``) times the push alone,
 and the page reports how long rendering a full snapshot of 100 robots takes. Results go to docs/PERFORMANCE.md.
-Target (issue 11): p99 under 1 s from a change to the page. ``main`` returns 1 when it is missed.
+Target: p99 under 1 s from a change to the page. ``main`` returns 1 when it is missed.
 """
 
 import argparse
@@ -221,13 +221,13 @@ def main(argv=None):
         f"Load average (1 min) of the machine: {load_before:.1f} before, {load_after:.1f} after (other "
         f"engineers' tests were running; the machine has {os.cpu_count()} cores).",
         "",
-        f"Target (issue 11): p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
+        f"Target: p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
         f"(the largest p99 of the page rows: {p99 * 1000:.0f} ms). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "
         f"the p50.",
     ])
     print(body)
     if not args.no_write:
-        write_section("console", "Console: a state change to the page, 100 robots provisioned (issue 11)", body)
+        write_section("console", "Console: a state change to the page, 100 robots provisioned", body)
     return 0 if p99 < TARGET_P99_S and not errors else 1
 
 

@@ -246,7 +246,7 @@ def main(argv=None):
     ])
     print(body)
     if not args.no_report:
-        write_section("flood", "RDAPI under a connection flood (issue 12)", body)
+        write_section("flood", "RDAPI under a connection flood", body)
     return 1 if failed else 0
 
 

@@ -197,7 +197,7 @@ def main(argv=None):
     ])
     print(body)
     if not args.no_report:
-        write_section("rdapi", "RDAPI: reads and provisioning writes (issue 3)", body)
+        write_section("rdapi", "RDAPI: reads and provisioning writes", body)
     return 1 if failed else 0
 
 

@@ -167,7 +167,7 @@ Load average (1 / 5 min) at the start {load_before}, at the end {load_after} (2 
 """
     print(body)
     if not args.no_write:
-        write_section("vpn", "VPN: a robot's OpenVPN start to paired (issue 9)", body)
+        write_section("vpn", "VPN: a robot's OpenVPN start to paired", body)
     return 0
 
 
