@@ -31,3 +31,10 @@ def test_default_listening_addresses(tmp_path, monkeypatch):
     assert core.listen_addresses(settings, "198.51.100.1") == (["198.51.100.1"], [])
     configured = settings_for(tmp_path, 1026, server={"port": 10100, "address": ["0.0.0.0"]})
     assert core.listen_addresses(configured, "203.0.113.10") == (["0.0.0.0"], [])
+
+
+def test_the_brokers_addresses_get_the_brokers_share(tmp_path):
+    settings = settings_for(tmp_path, 1026)
+    assert core.broker_shares(settings, 8) == {"127.0.0.1": 8}
+    settings.broker_address = "no-such-host.invalid"
+    assert core.broker_shares(settings, 8) == {}
