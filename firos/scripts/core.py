@@ -11,6 +11,7 @@ entities removed) on SIGINT/SIGTERM or a ROS shutdown.
 """
 
 import argparse
+import errno
 import logging
 import os
 import signal
@@ -80,11 +81,27 @@ def broker_shares(settings, share):
     return {info[4][0]: share for info in found}
 
 
-def open_servers(http, settings, notify_host):
-    """The listening servers (the administration socket last); OSError (its strerror naming the address or
-    path) when a required one cannot be bound."""
+def open_servers(http, settings, notify_host, admin_socket):
+    """The listening servers (the administration socket, at ``admin_socket``, last); OSError (its strerror naming
+    the address or path) when a required one cannot be bound.
+
+    A configured ``server.admin_socket`` another FIROS answers on stops FIROS. The default one (one per port and
+    user, so one per FIROS on a machine) can be another FIROS's only where machines share a home folder (test
+    hosts in network namespaces, two FIROS on two addresses with one port): then this FIROS takes
+    ``admin-PORT-PID.sock`` beside it and says so in its log."""
+    try:
+        return _open_servers(http, settings, notify_host, admin_socket)
+    except OSError as exc:
+        if settings.admin_socket or exc.errno != errno.EADDRINUSE or admin_socket not in (exc.strerror or ""):
+            raise
+    taken, admin_socket = admin_socket, admin_socket[:-len(".sock")] + f"-{os.getpid()}.sock"
+    log.warning("another FIROS answers on %s: this one's administration socket is %s", taken, admin_socket)
+    return _open_servers(http, settings, notify_host, admin_socket)
+
+
+def _open_servers(http, settings, notify_host, admin_socket):
     required, optional = listen_addresses(settings, notify_host)
-    options = {"admin_token": settings.admin_token, "admin_socket": settings.admin_socket,
+    options = {"admin_token": settings.admin_token, "admin_socket": admin_socket,
                "shares": broker_shares(settings, http.BROKER_SHARE)}
     if optional:
         try:
@@ -105,7 +122,6 @@ def load(args):
         settings.server_port = args.port
         if settings.endpoint_port is None:
             settings.endpoint_port = args.port
-    settings.admin_socket = admin_socket_path(settings)
     whitelist = Whitelist.load(args.config)
     descriptions = load_descriptions(args.config)
     return settings, whitelist, descriptions
@@ -135,6 +151,7 @@ def main(argv=None):
     try:
         settings, whitelist, descriptions = load(args)
         address, port = notification_address(settings)
+        admin_socket = admin_socket_path(settings)
     except ConfigError as exc:
         print(f"firos: configuration error: {exc}", file=sys.stderr)
         return 1
@@ -151,7 +168,7 @@ def main(argv=None):
     from include.topics import TopicHandler
 
     try:
-        servers = open_servers(http, settings, address)
+        servers = open_servers(http, settings, address, admin_socket)
     except OSError as exc:
         print(f"firos: cannot listen on {exc.strerror}", file=sys.stderr)
         return 1
