@@ -4,11 +4,14 @@ Orion-LD) and broker commands back to ROS topics (CONTRACTS §3).
 Run as `rosrun firos core.py [-P PORT] [--config DIR]`.
 
 This file only assembles the node: command line, configuration (one clear line and exit 1 when it is wrong),
-logging (stderr, /rosout and the node's ROS log file), the notification address, the parts in `include/`, the discovery loop in the main thread, and an
-orderly shutdown (subscriptions and entities removed) on SIGINT/SIGTERM or a ROS shutdown.
+logging (stderr, /rosout and the node's ROS log file), the notification address, the listeners (the HTTP API on its
+addresses and the administration socket, with the broker's addresses given a larger share), the parts in
+`include/` and their metrics, the discovery loop in the main thread, and an orderly shutdown (subscriptions and
+entities removed) on SIGINT/SIGTERM or a ROS shutdown.
 """
 
 import argparse
+import errno
 import logging
 import os
 import signal
@@ -18,7 +21,8 @@ import threading
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from include.config import PACKAGE_CONFIG_DIR, ConfigError, load_descriptions, load_settings  # noqa: E402
+from include.config import (PACKAGE_CONFIG_DIR, ConfigError, admin_socket_path,  # noqa: E402
+                            load_descriptions, load_settings)
 from include.whitelist import Whitelist  # noqa: E402
 
 log = logging.getLogger("firos")
@@ -67,16 +71,47 @@ def listen_addresses(settings, notify_host):
     return [platform], [] if notify_host == platform else [notify_host]
 
 
-def open_servers(http, settings, notify_host):
-    """The listening servers; OSError (its strerror naming the address) when a required one cannot be bound."""
+def broker_shares(settings, share):
+    """{address: share} for the addresses the broker's name has now (none when it cannot be resolved): the
+    broker's notifications come from there, and may take more connections than another address."""
+    try:
+        found = socket.getaddrinfo(settings.broker_address, settings.broker_port, proto=socket.IPPROTO_TCP)
+    except (OSError, UnicodeError):
+        return {}
+    return {info[4][0]: share for info in found}
+
+
+def open_servers(http, settings, notify_host, admin_socket):
+    """The listening servers (the administration socket, at ``admin_socket``, last); OSError (its strerror naming
+    the address or path) when a required one cannot be bound.
+
+    A configured ``server.admin_socket`` another FIROS answers on stops FIROS. The default one (one per port and
+    user, so one per FIROS on a machine) can be another FIROS's only where machines share a home folder (test
+    hosts in network namespaces, two FIROS on two addresses with one port): then this FIROS takes
+    ``admin-PORT-PID.sock`` beside it and says so in its log."""
+    try:
+        return _open_servers(http, settings, notify_host, admin_socket)
+    except OSError as exc:
+        if settings.admin_socket or exc.errno != errno.EADDRINUSE or admin_socket not in (exc.strerror or ""):
+            raise
+    taken, admin_socket = admin_socket, admin_socket[:-len(".sock")] + f"-{os.getpid()}.sock"
+    log.warning("another FIROS answers on %s: this one's administration socket is %s", taken, admin_socket)
+    return _open_servers(http, settings, notify_host, admin_socket)
+
+
+def _open_servers(http, settings, notify_host, admin_socket):
     required, optional = listen_addresses(settings, notify_host)
+    options = {"admin_token": settings.admin_token, "admin_socket": admin_socket,
+               "shares": broker_shares(settings, http.BROKER_SHARE)}
     if optional:
         try:
-            return http.make_servers(None, settings.server_port, required + optional, settings.admin_token)
+            return http.make_servers(None, settings.server_port, required + optional, **options)
         except OSError as exc:
+            if not (exc.strerror or "").startswith(f"{optional[0]}:"):
+                raise
             log.info("not listening on %s too (%s): the broker's notifications reach FIROS only if they come "
                      "to %s", optional[0], exc.strerror, ", ".join(required))
-    return http.make_servers(None, settings.server_port, required, settings.admin_token)
+    return http.make_servers(None, settings.server_port, required, **options)
 
 
 def load(args):
@@ -116,6 +151,7 @@ def main(argv=None):
     try:
         settings, whitelist, descriptions = load(args)
         address, port = notification_address(settings)
+        admin_socket = admin_socket_path(settings)
     except ConfigError as exc:
         print(f"firos: configuration error: {exc}", file=sys.stderr)
         return 1
@@ -124,6 +160,7 @@ def main(argv=None):
     from include import server as http
     from include.bridge import Firos
     from include.discovery import GraphReader
+    from include.metrics import make_metrics
     from include.ngsi_versions import client_for
     from include.rcm_bridge import RosControl
     from include.sender import Sender
@@ -131,7 +168,7 @@ def main(argv=None):
     from include.topics import TopicHandler
 
     try:
-        servers = open_servers(http, settings, address)
+        servers = open_servers(http, settings, address, admin_socket)
     except OSError as exc:
         print(f"firos: cannot listen on {exc.strerror}", file=sys.stderr)
         return 1
@@ -156,17 +193,21 @@ def main(argv=None):
     holder["firos"] = firos
     control = RosControl(firos)
     firos.events = control
-    for httpd in servers:
-        httpd.RequestHandlerClass.firos = firos
+    metrics = make_metrics(firos, servers[0].pool, servers[0].RequestHandlerClass.tally,
+                           servers[0].RequestHandlerClass.ROUTE_LABELS)
+    for client in (sender.client, subscriptions.client, firos.read_client):
+        client.observer = metrics.broker_request
+    sender.forward_observers.append(metrics.forwarded)
+    http.bind(servers, firos, metrics)
 
     sender.start()
     subscriptions.start()
     control.start()
     for httpd in servers:
         http.serve_in_thread(httpd)
-    log.info("FIROS up: HTTP on %s port %d, broker %s:%d (NGSI %s), notifications to %s",
-             ", ".join(h.server_address[0] for h in servers), settings.server_port,
-             settings.broker_address, settings.broker_port, settings.ngsi_version, url)
+    log.info("FIROS up: HTTP on %s, broker %s:%d (NGSI %s), notifications to %s",
+             ", ".join(h.describe() for h in servers), settings.broker_address, settings.broker_port,
+             settings.ngsi_version, url)
 
     while not stop.is_set() and not rospy.is_shutdown():
         try:

@@ -1,12 +1,15 @@
 """Helpers for FIROS tests (owned by the FIROS tests): configuration folders, FIROS as a real child
-(`rosrun firos core.py -P PORT --config DIR`), `rostopic` children, a small JSON HTTP client, FIROS's modules on
-the import path with the settings of a written configuration, and a recording HTTP server standing for a broker.
+(`rosrun firos core.py -P PORT --config DIR`, its administration socket in a short folder of its own), `rostopic`
+children, a small JSON HTTP client over TCP or a Unix socket, FIROS's modules on the import path with the settings
+of a written configuration, a recording HTTP server standing for a broker, and Prometheus text parsed.
 """
 
 import http.client
 import json
 import os
+import socket
 import sys
+import tempfile
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
@@ -18,11 +21,11 @@ from .ports import stable_free_ports
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 FIROS_SCRIPTS = os.path.join(ROOT, "firos", "scripts")
 
-SEED_WHITELIST = {
+SEED_WHITELIST = {       # FIROS's config/whitelist.json: the seed's entries, and p1 with its type declared
     "turtle\\w+": {"publisher": ["cmd_vel"], "subscriber": ["pose"]},
     "robot\\w+": {"publisher": ["cmd_vel.*teleop", ".*move_base/goal", ".*move_base/cancel"],
                   "subscriber": [".*move_base/result"]},
-    "end_end_test": {"publisher": ["p1"], "subscriber": ["s1"]},
+    "end_end_test": {"publisher": [{"topic": "p1", "type": "std_msgs/String"}], "subscriber": ["s1"]},
 }
 
 
@@ -101,9 +104,23 @@ class RecordingBroker:
         self.httpd.server_close()
 
 
-def request(port, method, path, body=None, raw=None, timeout=10.0, headers=None):
-    """(status, parsed JSON or text) of one HTTP request to 127.0.0.1:port."""
-    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=timeout)
+class UnixHTTPConnection(http.client.HTTPConnection):
+    """HTTP over a Unix socket, as ``curl --unix-socket PATH http://firos/...`` speaks it."""
+
+    def __init__(self, path, timeout=10.0):
+        super().__init__("firos", timeout=timeout)
+        self.socket_path = path
+
+    def connect(self):
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self.sock.settimeout(self.timeout)
+        self.sock.connect(self.socket_path)
+
+
+def request(port, method, path, body=None, raw=None, timeout=10.0, headers=None, unix=None):
+    """(status, parsed JSON or text) of one HTTP request to 127.0.0.1:port, or to the Unix socket ``unix``."""
+    conn = UnixHTTPConnection(unix, timeout) if unix else http.client.HTTPConnection("127.0.0.1", port,
+                                                                                    timeout=timeout)
     try:
         data = raw if raw is not None else (None if body is None else json.dumps(body).encode())
         hdrs = {"Content-Type": "application/json"} if data is not None else {}
@@ -129,6 +146,23 @@ class Firos:
         self.port = port or stable_free_ports(1)[0]
         self.name = name
         self.process = None
+        self.admin_socket = self._admin_socket_in_config()
+
+    def _admin_socket_in_config(self):
+        """The configured server.admin_socket, or one written into config.json: in the configuration folder, or
+        in a folder of its own under /tmp when that path would be too long for a Unix socket."""
+        path = os.path.join(self.config_dir, "config.json")
+        with open(path) as f:
+            data = json.load(f)
+        server = data[data["environment"]].setdefault("server", {})
+        if not server.get("admin_socket"):
+            socket_path = os.path.join(os.path.abspath(self.config_dir), "admin.sock")
+            if len(socket_path) > 100:
+                socket_path = os.path.join(tempfile.mkdtemp(prefix="firos-admin-"), "admin.sock")
+            server["admin_socket"] = socket_path
+            with open(path, "w") as f:
+                json.dump(data, f, indent=2)
+        return server["admin_socket"]
 
     def start(self, timeout=20.0):
         argv = ["/usr/bin/rosrun", "firos", "core.py", "-P", str(self.port), "--config", self.config_dir]
@@ -166,6 +200,10 @@ class Firos:
 
     def post(self, path, body=None, raw=None):
         return request(self.port, "POST", path, body=body, raw=raw)
+
+    def admin(self, path, body=None, raw=None, method="POST"):
+        """A request on FIROS's administration socket: what the operator does on FIROS's machine."""
+        return request(None, method, path, body=body, raw=raw, unix=self.admin_socket)
 
     def robots(self):
         status, body = self.get("/robots")
@@ -231,6 +269,17 @@ def received(procs, proc, topic):
         if line.startswith(f"RECV {topic} "):
             out.append(json.loads(line.split(" ", 2)[2]))
     return out
+
+
+def metric_samples(text):
+    """{(sample name, ((label, value), ...)): value} of a Prometheus text exposition, parsed by prometheus_client's
+    own parser (sample names carry ``_total`` in every version of it)."""
+    from prometheus_client.parser import text_string_to_metric_families
+    found = {}
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            found[(sample[0], tuple(sorted(sample[1].items())))] = sample[2]
+    return found
 
 
 def wait_subscription(firos, robot):

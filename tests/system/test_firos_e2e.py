@@ -189,22 +189,23 @@ def test_whitelist_descriptions_robots_and_nested_round_trip(procs, ros_master, 
     # an update naming only subscriber topics in COMMAND is not published back (no echo)
     assert received(procs, peer, "/turtle1/cmd_vel") == []
 
-    # the whitelist API: write adds (in memory), remove takes away, restore reloads the file
-    status, body = firos.post("/whitelist/write", {"turtle1": {"subscriber": ["hidden"]}})
+    # the whitelist API, on the administration socket: write adds (in memory), remove takes away, restore reloads
+    # the file
+    status, body = firos.admin("/whitelist/write", {"turtle1": {"subscriber": ["hidden"]}})
     assert status == 200 and "hidden" in body["reason"]["turtle1"]["subscriber"]
     wait_until(lambda: v2_value(broker, "turtle1", "hidden"), timeout=15, message="turtle1.hidden after write")
-    status, body = firos.post("/whitelist/remove", {"robot\\w+": {}})
+    status, body = firos.admin("/whitelist/remove", {"robot\\w+": {}})
     assert status == 200 and "robot\\w+" not in body["reason"]
-    status, body = firos.post("/whitelist/restore")
+    status, body = firos.admin("/whitelist/restore")
     assert status == 200 and body["reason"] == whitelist
 
     # disconnect removes the entity; connect brings it back
-    status, _ = firos.post("/robot/disconnect/robot1")
+    status, _ = firos.admin("/robot/disconnect/robot1")
     assert status == 200
     wait_until(lambda: v2_entity(broker, "robot1") is None, timeout=10, message="robot1's entity removed")
     assert "robot1" not in firos.robots()
-    assert firos.post("/robot/disconnect/robot1")[0] == 404
-    status, body = firos.post("/robot/connect", {"name": "robot1"})
+    assert firos.admin("/robot/disconnect/robot1")[0] == 404
+    status, body = firos.admin("/robot/connect", {"name": "robot1"})
     assert status == 200 and body["reason"] == ["robot1"]
     wait_until(lambda: v2_entity(broker, "robot1") is not None, timeout=10, message="robot1 back")
     assert firos.alive()
@@ -276,12 +277,12 @@ def test_malformed_bodies_get_400_and_firos_keeps_forwarding(procs, ros_master, 
     peer = talker(procs, ros_master, tmp_path, "--rate", "5", "--pub", "/end_end_test/s1", "std_msgs/String",
                   json.dumps({"data": "one"}), "--sub", "/end_end_test/p1", "std_msgs/String")
     wait_until(lambda: v2_value(broker, "end_end_test", "s1"), timeout=15, message="s1 in the broker")
-    whitelist_before = firos.post("/whitelist/write", {})[1]["reason"]
+    whitelist_before = firos.admin("/whitelist/write", {})[1]["reason"]
     for path, raw in MALFORMED:
-        status, body = firos.post(path, raw=raw)
+        status, body = (firos.post if path == "/firos" else firos.admin)(path, raw=raw)
         assert status == 400, (path, raw, status, body)
         assert body["result"] == "ERROR" and body["reason"], body
-    assert firos.post("/whitelist/write", {})[1]["reason"] == whitelist_before
+    assert firos.admin("/whitelist/write", {})[1]["reason"] == whitelist_before
     assert firos.alive()
 
     # still forwarding both ways

@@ -164,11 +164,11 @@ def test_v2_repeated_command_renewal_and_live_whitelist(procs, ros_master, tmp_p
 
     # whitelist addition and removal take effect on the mapped robot without a restart
     assert "/firos" not in subscribers(ros_master, "/end_end_test/s2")
-    status, _ = firos.post("/whitelist/write", {"end_end_test": {"subscriber": ["s2"]}})
+    status, _ = firos.admin("/whitelist/write", {"end_end_test": {"subscriber": ["s2"]}})
     assert status == 200
     wait_until(lambda: v2_value(broker, "end_end_test", "s2"), timeout=15, message="s2 mapped after write")
     assert "/firos" in subscribers(ros_master, "/end_end_test/s2")
-    status, _ = firos.post("/whitelist/remove", {"end_end_test": {"subscriber": ["s2"]}})
+    status, _ = firos.admin("/whitelist/remove", {"end_end_test": {"subscriber": ["s2"]}})
     assert status == 200
     wait_until(lambda: "/firos" not in subscribers(ros_master, "/end_end_test/s2"), timeout=10,
                message="FIROS's subscriber of s2 dropped")
@@ -181,7 +181,7 @@ def test_v2_repeated_command_renewal_and_live_whitelist(procs, ros_master, tmp_p
     assert "s2" not in {t["name"] for t in firos.robots()["end_end_test"]["topics"]}
 
     # and added again: mapped at once
-    status, _ = firos.post("/whitelist/write", {"end_end_test": {"subscriber": ["s2"]}})
+    status, _ = firos.admin("/whitelist/write", {"end_end_test": {"subscriber": ["s2"]}})
     assert status == 200
     wait_until(lambda: v2_value(broker, "end_end_test", "s2")["value"]["firosstamp"] > s2_stamp, timeout=15,
                message="s2 forwarded again after write")
@@ -215,9 +215,10 @@ def test_v1_second_update_context_is_published_and_the_initial_notification_is_n
     v1_command(broker, "123")      # the seed's updateContext once more: the robot moves again
     wait_until(lambda: len(received(procs, peer, "/end_end_test/p1")) == 2, timeout=15, message="second command")
 
-    # a new subscription (here: the whitelist names one more publisher topic) gets Orion's initial notification
+    # a new subscription (here: the whitelist declares one more publisher topic) gets Orion's initial notification
     # with the entity as it is, p1 included: it is not a command
-    status, _ = firos.post("/whitelist/write", {"end_end_test": {"publisher": ["p2"]}})
+    status, _ = firos.admin("/whitelist/write", {"end_end_test": {"publisher": [{"topic": "p2",
+                                                                                 "type": "std_msgs/String"}]}})
     assert status == 200
     second = wait_until(lambda: firos.stats()["subscriptions"].get("end_end_test") not in (None, first)
                         and firos.stats()["subscriptions"]["end_end_test"], timeout=15, message="the new subscription")

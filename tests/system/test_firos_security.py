@@ -1,11 +1,13 @@
-"""FIROS under attack (issue 12, rows 4, 5, 11, 12 and FIROS's half of 13): each test does what the probe of the
-issue did, as an attacker would, and asserts the safe outcome. Real ROS master, stand-in broker, FIROS child and
-HTTP on loopback; the remote attacker of row 4 stands on another host of a test LAN (network namespaces).
+"""FIROS under attack: each test does what a probe did (issue 12 rows 4, 5, 11, 12 and FIROS's half of 13; issue 18
+rows 4, 7 and 9), as an attacker would, and asserts the safe outcome. Real ROS master, stand-in broker, FIROS child
+and HTTP on loopback; the remote attacker of issue 12 row 4 and the broker turned against FIROS's administration
+(issue 18 row 7) stand on hosts of a test LAN (network namespaces).
 """
 
 import json
 import os
 import socket
+import threading
 import time
 
 import pytest
@@ -90,7 +92,7 @@ def stack(tmp_path_factory):
 
 
 def whitelist_now(firos):
-    status, body = firos.post("/whitelist/write", {})
+    status, body = firos.admin("/whitelist/write", {})
     assert status == 200, body
     return body["reason"]
 
@@ -100,7 +102,7 @@ def whitelist_now(firos):
 @pytest.mark.parametrize("pattern", ["(a|a)*b", "(a+)+b", "(a*)*b", "(x)\\1", ".*a.*b.*c", "a" * 300])
 def test_row5_catastrophic_whitelist_patterns_are_refused_and_change_nothing(stack, pattern):
     before = whitelist_now(stack.firos)
-    status, body = stack.firos.post("/whitelist/write", {"end_end_test": {"publisher": [pattern]}})
+    status, body = stack.firos.admin("/whitelist/write", {"end_end_test": {"publisher": [pattern]}})
     assert status == 400, body
     assert body["result"] == "ERROR" and ("refused" in body["reason"] or "longer than" in body["reason"]), body
     assert whitelist_now(stack.firos) == before
@@ -162,10 +164,13 @@ def test_row4_whitelist_edits_from_web_pages_and_non_json_bodies_are_refused(sta
 def test_row11_300_disconnects_of_a_60kb_name_keep_nothing(stack):
     pid = stack.firos.python_pid()
     name = "x" * 60_000
+    # from the network they are refused before the name is looked at; on the administration socket (someone
+    # who may administer FIROS, or a script gone wrong) each is a 400 and nothing about the name is kept
+    assert request(stack.firos.port, "POST", f"/robot/disconnect/{name}")[0] == 403
 
     def attack():
         for _ in range(300):
-            status, body = request(stack.firos.port, "POST", f"/robot/disconnect/{name}")
+            status, body = stack.firos.admin(f"/robot/disconnect/{name}")
             assert status == 400 and len(body["reason"]) < 300, (status, str(body)[:300])
 
     attack()                 # warm-up: the allocator's high-water mark for such requests is reached
@@ -175,7 +180,7 @@ def test_row11_300_disconnects_of_a_60kb_name_keep_nothing(stack):
     grown = rss_kib(pid) - before
     # before the fix each round of 300 kept 18 MB for good (36 MB here); the allocator's noise is a few MB
     assert grown < 12 * 1024, f"FIROS kept {grown} KiB after 600 refused disconnects"
-    assert request(stack.firos.port, "POST", "/robot/disconnect/nobody")[0] == 404
+    assert stack.firos.admin("/robot/disconnect/nobody")[0] == 404
     assert stack.firos.get("/robots")[0] == 200
 
 
@@ -183,7 +188,8 @@ def test_row11_300_disconnects_of_a_60kb_name_keep_nothing(stack):
 
 @pytest.mark.parametrize("path", ["/firos", "/whitelist/write", "/robot/connect"])
 def test_row13_deeply_nested_json_is_a_400_and_firos_keeps_serving(stack, path):
-    status, body = stack.firos.post(path, raw=b"[" * 100_000 + b"]" * 100_000)
+    send = stack.firos.post if path == "/firos" else stack.firos.admin
+    status, body = send(path, raw=b"[" * 100_000 + b"]" * 100_000)
     assert status == 400 and body["result"] == "ERROR" and "nested" in body["reason"], body
     assert stack.firos.get("/robots")[0] == 200
 
@@ -227,6 +233,124 @@ def test_row12_400_slow_clients_get_no_thread_each_and_no_traceback(stack):
     assert threads_of(pid) <= baseline + 4
     assert stack.firos.get("/robots")[0] == 200
     assert "Traceback" not in stack.firos.output()
+
+
+# --- issue 18 row 4: keep-alive connections trickling requests ---------------------------------------------------
+
+REQUEST = b"GET /robots HTTP/1.1\r\nHost: firos\r\n\r\n"
+
+
+def read_answer(sock):
+    """(status, headers as a lower-case dict) of one answer on a kept-alive connection; (None, {}) when closed."""
+    data = b""
+    while b"\r\n\r\n" not in data:
+        chunk = sock.recv(65536)
+        if not chunk:
+            return None, {}
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    headers = {k.strip().lower(): v.strip() for k, _, v in (line.partition(":") for line in lines[1:])}
+    length = int(headers.get("content-length", 0))
+    while len(body) < length:
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        body += chunk
+    return int(lines[0].split()[1]), headers
+
+
+def test_issue18_row4_keepalive_connections_trickling_requests_leave_the_broker_its_workers(stack):
+    """16 keep-alive connections from two addresses, one small request every 8 s each (the probe's attack, which
+    held every worker for as long as it went on): each address keeps its share of 4, the broker's notification
+    (from its own address) and another client are served meanwhile, and every held connection is closed at its
+    lifetime."""
+    held, refused = [], 0
+    for number in range(16):
+        sock = socket.create_connection(("127.0.0.1", stack.firos.port), timeout=15,
+                                        source_address=(("127.0.0.2", "127.0.0.3")[number % 2], 0))
+        sock.sendall(REQUEST)
+        status, headers = read_answer(sock)
+        if status == 200 and headers.get("connection") != "close":
+            held.append(sock)
+        else:
+            assert status == 503, (status, headers)
+            refused += 1
+            sock.close()
+    assert (len(held), refused) == (8, 8)
+    opened = time.monotonic()
+    closed_after = {}
+    stop = threading.Event()
+
+    def trickle(sock):                     # the attacker's pace: one request every 8 s until FIROS hangs up
+        while not stop.wait(8.0):
+            try:
+                sock.sendall(REQUEST)
+                status, headers = read_answer(sock)
+            except OSError:
+                status, headers = None, {}
+            if status is None or headers.get("connection") == "close":
+                closed_after[sock] = time.monotonic() - opened
+                return
+    threads = [threading.Thread(target=trickle, args=(sock,), daemon=True) for sock in held]
+    for thread in threads:
+        thread.start()
+    try:
+        # while they hold their share: a command through the broker (its notification comes from the broker's
+        # address, 127.0.0.1) reaches the robot, and a client from a third address is served
+        before = len(received(stack.group, stack.peer, "/end_end_test/p1"))
+        status, _ = request(stack.broker.port, "POST", "/v2/op/update?options=forcedUpdate", {
+            "actionType": "append", "entities": [{
+                "id": "end_end_test", "type": "ROBOT",
+                "p1": {"type": "std_msgs.msg.String", "value": {"data": "while held"}},
+                "COMMAND": {"type": "COMMAND", "value": ["p1"]}}]})
+        assert status == 204
+        wait_until(lambda: len(received(stack.group, stack.peer, "/end_end_test/p1")) > before, timeout=8,
+                   message="the broker's command while the attacker holds its share")
+        other = socket.create_connection(("127.0.0.1", stack.firos.port), timeout=8, source_address=("127.0.0.4", 0))
+        other.sendall(REQUEST)
+        assert read_answer(other)[0] == 200
+        other.close()
+        assert time.monotonic() - opened < 8, "the checks above must run while the connections are held"
+        # the total deadline: each is closed after the first answer at 20 s or more (30 s lifetime - 10 s deadline)
+        for thread in threads:
+            thread.join(45)
+        assert len(closed_after) == 8 and all(20 <= after < 35 for after in closed_after.values()), closed_after
+    finally:
+        stop.set()
+        for sock in held:
+            sock.close()
+    assert stack.firos.get("/robots")[0] == 200
+
+
+# --- issue 18 row 9: a whitelisted topic absent from the ROS graph, with a type the caller chose --------------------
+
+def test_issue18_row9_a_topic_absent_from_the_graph_is_not_created_with_the_callers_type(stack):
+    assert stack.firos.admin("/whitelist/write", {"end_end_test": {"publisher": ["goal"]}})[0] == 200
+    try:
+        note = command("end_end_test", "goal", "geometry_msgs.msg.PoseStamped", {"pose": {"position": {"x": 9.0}}})
+        for _ in range(50):
+            status, body = request(stack.firos.port, "POST", "/firos", note)
+            assert status == 200 and body["reason"] == {}, body
+        assert "/end_end_test/goal" not in dict(stack.master.topic_types())       # no publisher was made
+        said = [line for line in stack.firos.output().splitlines()
+                if "'/end_end_test/goal' is not in the ROS graph" in line]
+        assert 1 <= len(said) <= 10, said                                       # through the budget
+    finally:
+        stack.firos.admin("/whitelist/remove", {"end_end_test": {"publisher": ["goal"]}})
+
+
+def test_a_flood_of_refused_requests_leaves_firos_log_its_evidence(stack):
+    before = stack.firos.output()
+    for number in range(300):
+        path = "/" + "x" * 16000 if number % 2 else "/whitelist/restore"
+        request(stack.firos.port, "POST", path, body={})
+    new = stack.firos.output()[len(before):].splitlines()
+    # at most a budget's worth (an earlier flood of this module may still hold the window), each line short; the
+    # request lines FIROS writes at DEBUG have a budget too
+    about = [line for line in new if "answered 404" in line or "refused POST" in line]
+    assert len(about) <= 10 and len(new) <= 40 and all(len(line) < 1000 for line in new), (len(new), new[:3])
+    assert stack.firos.get("/robots")[0] == 200
 
 
 # --- where FIROS listens, and the admin token ------------------------------------------------------------------------
@@ -277,9 +401,12 @@ FIROS_PORT = 10100
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def curl(host, method, url, body=None, headers=()):
-    """(status, JSON or text) of one request made with curl inside ``host``; status None when unreachable."""
+def curl(host, method, url, body=None, headers=(), unix=None):
+    """(status, JSON or text) of one request made with curl inside ``host`` (over the Unix socket ``unix``, as the
+    operator does on FIROS's machine); status None when unreachable."""
     argv = ["curl", "-s", "--max-time", "5", "-o", "-", "-w", "\n%{http_code}", "-X", method]
+    if unix:
+        argv += ["--unix-socket", unix]
     for header in headers:
         argv += ["-H", header]
     if body is not None:
@@ -294,41 +421,60 @@ def curl(host, method, url, body=None, headers=()):
         return int(status), text
 
 
-@pytest.mark.netns
-def test_row4_an_attacker_on_the_lan_cannot_change_what_firos_maps_nor_pick_a_type(lan, tmp_path):
-    from tests.support.processes import ros_env
-    master, attacker = lan.add_host("master"), lan.add_host("attacker")
-    uri = f"http://{master.address}:11311"
-    env = ros_env({"ROS_IP": master.address, "ROS_LOG_DIR": str(tmp_path / "roslog")}, master_uri=uri)
-    master.start(["/usr/bin/rosmaster", "--core", "-p", "11311"], env=env, name="rosmaster")
-    master.start(["/usr/bin/python3", "-m", "tests.ngsi_broker", "--host", master.address, "--port", "1026",
-                  "--quiet"], cwd=REPO, name="ngsi-broker")
-    config = write_config(str(tmp_path / "config"), 1026)
-    with open(os.path.join(config, "config.json")) as f:
-        data = json.load(f)
-    data["test"]["contextbroker"]["address"] = data["test"]["endpoint"]["address"] = master.address
-    with open(os.path.join(config, "config.json"), "w") as f:
-        json.dump(data, f)
-    wait_until(lambda: master.run(["/usr/bin/python3", "-c", "import xmlrpc.client,sys; xmlrpc.client.ServerProxy("
-                                   "sys.argv[1]).getPid('/t')", uri], check=False).returncode == 0,
-               timeout=20, message="the ROS master in the master host")
-    peer = master.start(["/usr/bin/python3", "-m", "tests.support.firos_talker", "--rate", "5",
-                         "--pub", "/end_end_test/s1", "std_msgs/String", json.dumps({"data": "hi"}),
-                         "--sub", "/end_end_test/p1", "std_msgs/String"], env=env, cwd=REPO, name="talker")
-    firos = master.start(["/usr/bin/rosrun", "firos", "core.py", "-P", str(FIROS_PORT), "--config", config],
-                         env=env, name="firos")
-    base = f"http://{master.address}:{FIROS_PORT}"
+class FirosHost:
+    """A machine of the test LAN running a ROS master, the stand-in broker (on the machine's own address, as a broker
+    beside FIROS would be), FIROS on its address and a ROS peer publishing s1 and listening on p1."""
 
-    def robots_seen_by_attacker():
-        assert firos.poll() is None, lan.procs.output(firos)
-        status, body = curl(attacker, "GET", base + "/robots")
+    def __init__(self, lan, tmp_path):
+        from tests.support.processes import ros_env
+        self.lan = lan
+        self.host = lan.add_host("master")
+        address = self.host.address
+        uri = f"http://{address}:11311"
+        env = ros_env({"ROS_IP": address, "ROS_LOG_DIR": str(tmp_path / "roslog")}, master_uri=uri)
+        self.host.start(["/usr/bin/rosmaster", "--core", "-p", "11311"], env=env, name="rosmaster")
+        self.host.start(["/usr/bin/python3", "-m", "tests.ngsi_broker", "--host", address, "--port", "1026",
+                         "--quiet"], cwd=REPO, name="ngsi-broker")
+        config = write_config(str(tmp_path / "config"), 1026)
+        with open(os.path.join(config, "config.json")) as f:
+            data = json.load(f)
+        data["test"]["contextbroker"]["address"] = data["test"]["endpoint"]["address"] = address
+        self.admin_socket = str(tmp_path / "admin.sock")
+        data["test"]["server"] = {"port": FIROS_PORT, "admin_socket": self.admin_socket}
+        with open(os.path.join(config, "config.json"), "w") as f:
+            json.dump(data, f)
+        wait_until(lambda: self.host.run(["/usr/bin/python3", "-c", "import xmlrpc.client,sys; xmlrpc.client."
+                                          "ServerProxy(sys.argv[1]).getPid('/t')", uri], check=False).returncode == 0,
+                   timeout=20, message="the ROS master in the master host")
+        self.peer = self.host.start(["/usr/bin/python3", "-m", "tests.support.firos_talker", "--rate", "5",
+                                     "--pub", "/end_end_test/s1", "std_msgs/String", json.dumps({"data": "hi"}),
+                                     "--sub", "/end_end_test/p1", "std_msgs/String"], env=env, cwd=REPO,
+                                    name="talker")
+        self.firos = self.host.start(["/usr/bin/rosrun", "firos", "core.py", "-P", str(FIROS_PORT), "--config",
+                                      config], env=env, name="firos")
+        self.base = f"http://{address}:{FIROS_PORT}"
+        self.broker = f"http://{address}:1026"
+
+    def mapped(self, from_host):
+        """True once FIROS maps end_end_test with p1, as ``from_host`` sees it."""
+        assert self.firos.poll() is None, self.lan.procs.output(self.firos)
+        status, body = curl(from_host, "GET", self.base + "/robots")
         return status == 200 and any(r["name"] == "end_end_test" and "p1" in {t["name"] for t in r["topics"]}
                                      for r in body)
-    wait_until(robots_seen_by_attacker, timeout=30, message="FIROS to map end_end_test, seen from the LAN")
+
+    def received(self):
+        return received(self.lan.procs, self.peer, "/end_end_test/p1")
+
+
+@pytest.mark.netns
+def test_row4_an_attacker_on_the_lan_cannot_change_what_firos_maps_nor_pick_a_type(lan, tmp_path):
+    site = FirosHost(lan, tmp_path)
+    master, attacker, base = site.host, lan.add_host("attacker"), site.base
+    wait_until(lambda: site.mapped(attacker), timeout=30, message="FIROS to map end_end_test, seen from the LAN")
 
     # the probe: write the whitelist, disconnect, then command with a type of the attacker's choosing
     status, body = curl(attacker, "POST", base + "/whitelist/write", {"end_end_test": {"publisher": ["evil"]}})
-    assert status == 403 and "machine FIROS runs on" in body["reason"], body
+    assert status == 403 and "administration socket" in body["reason"], body
     assert curl(attacker, "POST", base + "/whitelist/restore")[0] == 403
     assert curl(attacker, "POST", base + "/robot/disconnect/end_end_test")[0] == 403
     status, body = curl(attacker, "POST", base + "/firos",
@@ -337,14 +483,62 @@ def test_row4_an_attacker_on_the_lan_cannot_change_what_firos_maps_nor_pick_a_ty
     status, body = curl(attacker, "POST", base + "/firos",
                         command("end_end_test", "p1", "geometry_msgs.msg.Twist", {"linear": {"x": 1.0}}))
     assert status == 400, body
-    # what it could not do from the LAN, the operator does on the master itself
-    status, body = curl(master, "POST", base + "/whitelist/write", {"end_end_test": {"publisher": ["p2"]}})
+    # what it could not do from the LAN, nor from FIROS's own machine over TCP, the operator does on the
+    # administration socket
+    assert curl(master, "POST", base + "/whitelist/write", {"end_end_test": {"publisher": ["p2"]}})[0] == 403
+    status, body = curl(master, "POST", "http://firos/whitelist/write", {"end_end_test": {"publisher": ["p2"]}},
+                        unix=site.admin_socket)
     assert status == 200 and "p2" in body["reason"]["end_end_test"]["publisher"]
     assert "evil" not in body["reason"]["end_end_test"]["publisher"]
     # and FIROS is not on the master's other addresses
     assert curl(master, "GET", f"http://127.0.0.1:{FIROS_PORT}/robots")[0] is None
     assert curl(attacker, "POST", base + "/firos",
                 command("end_end_test", "p1", "std_msgs.msg.String", {"data": "ok"}))[0] == 200
-    wait_until(lambda: {"data": "ok"} in received(lan.procs, peer, "/end_end_test/p1"), timeout=15,
+    wait_until(lambda: {"data": "ok"} in site.received(), timeout=15,
                message="the broker-shaped command on /end_end_test/p1")
-    assert all("linear" not in m for m in received(lan.procs, peer, "/end_end_test/p1"))
+    assert all("linear" not in m for m in site.received())
+
+
+@pytest.mark.netns
+def test_row7_a_broker_beside_firos_cannot_be_made_to_administer_it(lan, tmp_path):
+    """Issue 18 row 7: the broker runs on FIROS's machine; a stranger who may use the broker (its API is FIWARE's
+    public side) subscribes FIROS's own administrative URLs and makes the broker notify them. The broker's
+    requests come from FIROS's machine, which FIROS took for its operator; now they reach only /firos."""
+    site = FirosHost(lan, tmp_path)
+    stranger = lan.add_host("stranger")
+    wait_until(lambda: site.mapped(stranger), timeout=30, message="FIROS to map end_end_test")
+    wait_until(lambda: curl(stranger, "GET", site.broker + "/v2/entities/end_end_test?type=ROBOT")[0] == 200,
+               timeout=20, message="the robot's entity in the broker")
+    whitelist = curl(site.host, "POST", "http://firos/whitelist/write", {}, unix=site.admin_socket)[1]["reason"]
+    targets = ["/robot/disconnect/end_end_test", "/whitelist/restore", "/whitelist/remove", "/robot/connect"]
+    for number, target in enumerate(targets):
+        status, _ = curl(stranger, "POST", site.broker + "/v2/subscriptions", {
+            "description": f"stranger {number}", "subject": {
+                "entities": [{"id": "end_end_test", "type": "ROBOT"}], "condition": {"attrs": [f"bait{number}"]}},
+            "notification": {"http": {"url": site.base + target}}})
+        assert status == 201
+        status, _ = curl(stranger, "POST", site.broker + "/v2/op/update", {"actionType": "append", "entities": [
+            {"id": "end_end_test", "type": "ROBOT", f"bait{number}": {"type": "Number", "value": number}}]})
+        assert status == 204
+
+    def refused():
+        status, subs = curl(stranger, "GET", site.broker + "/v2/subscriptions")
+        ours = [sub for sub in subs if sub.get("description", "").startswith("stranger ")]
+        return len(ours) == len(targets) and all(
+            sub["notification"].get("lastFailureReason", "").startswith("HTTP 403") for sub in ours) and ours
+    subs = wait_until(refused, timeout=20, message="the broker's notifications to be refused with 403")
+    assert all(sub["notification"]["timesSent"] >= 1 for sub in subs)
+    # nothing changed: the robot is connected, its entity and subscription are there, the whitelist is the same
+    assert site.mapped(stranger)
+    assert curl(stranger, "GET", site.broker + "/v2/entities/end_end_test?type=ROBOT")[0] == 200
+    assert curl(site.host, "POST", "http://firos/whitelist/write", {},
+                unix=site.admin_socket)[1]["reason"] == whitelist
+    # the broker's real job still works: a command through it reaches the robot
+    status, _ = curl(stranger, "POST", site.broker + "/v2/op/update", {"actionType": "append", "entities": [
+        {"id": "end_end_test", "type": "ROBOT", "p1": {"type": "std_msgs.msg.String", "value": {"data": "go"}},
+         "COMMAND": {"type": "COMMAND", "value": ["p1"]}}]})
+    assert status == 204
+    wait_until(lambda: {"data": "go"} in site.received(), timeout=15, message="the command through the broker")
+    # and FIROS's log says what it refused, briefly
+    output = lan.procs.output(site.firos)
+    assert "refused POST '/robot/disconnect/end_end_test'" in output and "Traceback" not in output

@@ -4,12 +4,15 @@ Owns the robot table and the rules of CONTRACTS §3 that tie the other modules t
 its entity (with `descriptions`), subscribes to its subscriber topics and keeps a broker subscription for its
 publisher attributes; disconnecting undoes all of it; a notification whose `COMMAND` lists publisher topics of a
 connected robot is published on them, FIROS's own updates excepted, and FIROS then writes `COMMAND` back to the empty
-list (the command is taken), so that whatever the broker re-sends without a new update commands nothing. A whitelist
+list (the command is taken), so that whatever the broker re-sends without a new update commands nothing. A command
+goes only to a topic of the robot's ROS graph, with the graph's type, or to one whose type the whitelist declares;
+never with a type the caller chose. Commands are counted (`commands`: published, or why not). A whitelist
 edit takes effect on the robots already mapped: topics no longer allowed are dropped, newly allowed ones mapped, and
 the limits it sets passed on to the sender. Robots explicitly disconnected are not brought back by graph discovery
 until they are connected again. Errors a client can cause raise `ApiError`.
 """
 
+import collections
 import logging
 import re
 import threading
@@ -18,15 +21,21 @@ from dataclasses import dataclass, field
 from include import discovery
 from include.config import ConfigError
 from include.discovery import TopicInfo
+from include.log_guard import Budget, shown
 from include.ngsi_client import COMMAND, DESCRIPTIONS, BrokerError, BrokerUnavailable, NotificationError
 from include.ngsi_encoding import NgsiEncodingError, attribute_to_relative_topic, check_robot_name, \
     attribute_type_to_message_type, message_type_to_attribute_type, relative_topic_to_attribute, \
     split_firosstamp
 from include.ros_conversion import ConversionError, dict_to_message, load_message_class
 from include.topics import structure
-from include.whitelist import WhitelistError
+from include.whitelist import WhitelistError, pattern_of
 
 log = logging.getLogger("firos.bridge")
+
+# why a commanded attribute was not published: no topic the whitelist lets the broker command (FIROS's own
+# attributes, listed in COMMAND by its updates, included), a whitelisted topic absent from the ROS graph whose type
+# nothing declares, FIROS's own update coming back, an entity that is no connected robot, a command refused (400)
+COMMAND_SKIPS = ("not_whitelisted", "not_in_graph", "own_update", "unknown_robot", "refused")
 
 _LITERAL_TOPIC = re.compile(r"[A-Za-z0-9_/]+")
 
@@ -84,6 +93,8 @@ class Firos:
         self.robots = {}
         self.disabled = set()              # disconnected on request: discovery leaves them alone
         self._announced = set()
+        self.commands = collections.Counter({outcome: 0 for outcome in ("published",) + COMMAND_SKIPS})
+        self.notes = Budget(log, "lines about commands not published")
 
     # --- connecting -------------------------------------------------------------------------------------------
     def scan(self, only=None):
@@ -125,7 +136,9 @@ class Firos:
             return [name] if name in self.robots else []
 
     def connect_rcm(self, name, info):
-        """Connect an RCM robot whose topics (the whole service space) come from rcm_driver's firos_info."""
+        """Connect an RCM robot whose topics (the whole service space) come from rcm_driver's firos_info;
+        ApiError 400 for a name no robot can have."""
+        _robot_name(name)
         info = info if isinstance(info, dict) else {}
         topics = discovery.robot_from_rcm(name, info, self.whitelist)
         with self._membership:
@@ -189,18 +202,21 @@ class Firos:
         return changed
 
     def _update_subscription(self, robot):
+        """The broker subscription watches the robot's command attributes: its publisher topics in the graph and
+        those whose type the whitelist declares; any attribute while a publisher pattern matches no topic yet."""
         attrs, wildcard = set(), False
         for info in robot.topics.values():
             if "publisher" in info.kinds:
                 attrs.add(info.attribute)
+        for topic in self.whitelist.declared_types(robot.name):
+            try:
+                attrs.add(relative_topic_to_attribute(topic))
+            except NgsiEncodingError:
+                continue
         for rx, entry in self._whitelist_entries(robot.name):
-            for pattern in entry.get("publisher", []):
-                if _LITERAL_TOPIC.fullmatch(pattern):
-                    try:
-                        attrs.add(relative_topic_to_attribute(pattern))
-                    except NgsiEncodingError:
-                        continue
-                elif not any(re.fullmatch(pattern, rel) for rel in robot.topics):
+            for pattern in map(pattern_of, entry.get("publisher", [])):
+                if not _LITERAL_TOPIC.fullmatch(pattern) and not any(re.fullmatch(pattern, rel)
+                                                                     for rel in robot.topics):
                     wildcard = True
         if attrs and self.read_client.watches_command:
             # a broker that notifies only real changes and cannot be forced (v1 Orion): a repeated command
@@ -271,69 +287,83 @@ class Firos:
     def handle_notification(self, body):
         """Publish the commanded attributes of a notification (v1, v2 or NGSI-LD, as configured); returns
         {robot: [attributes published]}. Every notification naming a publisher attribute in COMMAND is
-        published, a repeated command included; FIROS then writes COMMAND back to [] (see the module doc)."""
+        published, a repeated command included; FIROS then writes COMMAND back to [] (see the module doc).
+        Each commanded attribute is counted in ``commands``: published, or why not (``COMMAND_SKIPS``)."""
+        jobs, skipped = [], []
         try:
-            entities = self.read_client.parse_notification(body)
-        except NotificationError as exc:
-            raise ApiError(400, str(exc)) from None
-        jobs = []
-        for eid, _etype, attrs in entities:
-            name = self.read_client.robot_of(eid)
-            with self._lock:
-                robot = self.robots.get(name) if name is not None else None
-            if robot is None:
-                continue
-            command = attrs.get(COMMAND, (None, []))[1]
-            if command is None or command == "":
-                command = []
-            if isinstance(command, str):
-                command = [command]
-            if not isinstance(command, list) or not all(isinstance(c, str) for c in command):
-                raise ApiError(400, f"COMMAND of {eid!r} must be a list of attribute names")
-            for attr in command:
-                if attr not in attrs or attr == COMMAND:
+            try:
+                entities = self.read_client.parse_notification(body)
+            except NotificationError as exc:
+                raise ApiError(400, str(exc)) from None
+            for eid, _etype, attrs in entities:
+                name = self.read_client.robot_of(eid)
+                with self._lock:
+                    robot = self.robots.get(name) if name is not None else None
+                command = attrs.get(COMMAND, (None, []))[1]
+                if robot is None:
+                    skipped += ["unknown_robot"] * (len(command) if isinstance(command, list) else 0)
                     continue
-                job = self._command_job(robot, attr, attrs[attr])
-                if job is not None:
-                    jobs.append(job)
+                if command is None or command == "":
+                    command = []
+                if isinstance(command, str):
+                    command = [command]
+                if not isinstance(command, list) or not all(isinstance(c, str) for c in command):
+                    raise ApiError(400, f"COMMAND of {eid!r} must be a list of attribute names")
+                for attr in command:
+                    if attr not in attrs or attr == COMMAND:
+                        continue
+                    job, why_not = self._command_job(robot, attr, attrs[attr])
+                    if job is not None:
+                        jobs.append(job)
+                    else:
+                        skipped.append(why_not)
+        except ApiError:
+            self._count(["refused"])
+            raise
         published = {}
         for robot, attr, topic, msg_type, msg, known in jobs:   # all converted: now publish
             self.topics.publish(robot.name, topic, msg_type, msg, known)
             published.setdefault(robot.name, []).append(attr)
         for name in published:
             self.sender.command_taken(name)
+        self._count(skipped + ["published"] * len(jobs))
         return published
 
+    def _count(self, outcomes):
+        with self._lock:
+            self.commands.update(outcomes)
+
     def _command_job(self, robot, attr, typed_value):
+        """(the job publishing a commanded attribute, None), or (None, why it is not published: a word of
+        COMMAND_SKIPS); ApiError 400 for a command that cannot be published (another type, a bad value).
+
+        A command is published on a topic of the robot's ROS graph with that topic's type, or on a topic absent from
+        the graph whose type a whitelist entry declares, with that type; never with a type the caller chose
+        (docs/DECISIONS.md, "FIROS commands only topics in the graph")."""
         attr_type, value = typed_value
         try:
             relative = attribute_to_relative_topic(attr)
         except NgsiEncodingError:
-            return None                                     # not a name FIROS maps: never a topic
+            return None, "not_whitelisted"                  # not a name FIROS maps: never a topic
         info = robot.topics.get(relative)
         if info is not None and "publisher" in info.kinds:
             topic, msg_type, known = info.name, info.msg_type, True
-            named = _message_type(attr_type) if attr_type is not None else None
-            if named is not None and named != msg_type:
-                raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but topic "
-                                    f"{topic} carries {message_type_to_attribute_type(msg_type)}")
-        elif self.whitelist.configured_literal(robot.name, relative) \
-                and "publisher" in self.whitelist.topic_kinds(robot.name, relative):
-            # not in the ROS graph: only a plain name of the configured whitelist.json (the seed's p1), never a
-            # topic an HTTP whitelist edit added; the type is the command's until a node uses the topic
-            msg_type = _message_type(attr_type)
-            if msg_type is None:
-                raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r}, "
-                                    f"not a message type like std_msgs.msg.String")
-            topic, known = f"{robot.namespace}/{relative}", False
-            pinned = self.topics.publisher_type(topic)
-            if pinned is not None and pinned != msg_type:   # the first command chose; later ones cannot switch
-                raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but FIROS "
-                                    f"already publishes {topic} as {message_type_to_attribute_type(pinned)}")
         else:
-            return None
+            if "publisher" not in self.whitelist.topic_kinds(robot.name, relative):
+                return None, "not_whitelisted"
+            topic, known = f"{robot.namespace}/{relative}", False
+            msg_type = self.whitelist.declared_type(robot.name, relative)
+            if msg_type is None:
+                self.notes.info("a command of %s for %s not published: %s is not in the ROS graph (FIROS commands "
+                                "the topics nodes use, with their type, and those whose type the whitelist "
+                                "declares)", robot.name, shown(attr), shown(topic))
+                return None, "not_in_graph"
+        named = _message_type(attr_type) if attr_type is not None else None
+        if named is not None and named != msg_type:
+            raise ApiError(400, f"attribute {attr!r} of {robot.name!r} has type {attr_type!r} but topic "
+                                f"{topic} carries {message_type_to_attribute_type(msg_type)}")
         if self.sender.is_own(robot.name, attr, value):
-            return None
+            return None, "own_update"
         try:
             data, _ = split_firosstamp(value)
         except NgsiEncodingError:
@@ -343,7 +373,7 @@ class Firos:
             msg = dict_to_message(data, load_message_class(msg_type))
         except ConversionError as exc:
             raise ApiError(400, f"{robot.name}.{attr}: {exc}") from None
-        return robot, attr, topic, msg_type, msg, known
+        return (robot, attr, topic, msg_type, msg, known), None
 
     # --- reading ----------------------------------------------------------------------------------------------
     def list_robots(self):

@@ -20,6 +20,7 @@ PACKAGE_CONFIG_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.dirnam
 
 DEFAULT_LD_CONTEXT = "https://uri.etsi.org/ngsi-ld/v1/ngsi-ld-core-context.jsonld"
 NGSI_VERSIONS = ("v1", "v2", "ld")
+MAX_SOCKET_PATH = 107      # bytes of a Unix socket's path (sun_path holds 108 with the final NUL)
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "WARN", "ERROR", "CRITICAL", "FATAL")
 _ISO_DURATION = re.compile(
     r"^P(?:(?P<years>\d+(?:\.\d+)?)Y)?(?:(?P<months>\d+(?:\.\d+)?)M)?(?:(?P<weeks>\d+(?:\.\d+)?)W)?"
@@ -45,7 +46,8 @@ class Settings:
     environment: str
     server_port: int = 10100
     server_addresses: list | None = None    # (ext) addresses the HTTP API listens on; None = core.py's default
-    admin_token: str | None = None          # (ext) whitelist/robot edits need it, from anywhere, when set
+    admin_token: str | None = None          # (ext) administrative calls over TCP need it (none without it)
+    admin_socket: str | None = None         # (ext) the administration socket's path; None = admin_socket_path's
     broker_address: str = ""
     broker_port: int = 1026
     max_request_size: int = 1048576         # (ext) bytes; FIROS never sends a bigger request (Orion's limit)
@@ -192,6 +194,29 @@ def _token(value):
     return value
 
 
+def _socket_path(value):
+    if not isinstance(value, str) or not os.path.isabs(value) or "\0" in value:
+        raise _Bad(f"must be an absolute path for a Unix socket, not {value!r}")
+    if len(os.fsencode(value)) > MAX_SOCKET_PATH:
+        raise _Bad(f"is longer than a Unix socket's path may be ({MAX_SOCKET_PATH} bytes)")
+    return value
+
+
+def admin_socket_path(settings, environ=None):
+    """The administration socket's path: ``server.admin_socket``, else ``ROS_HOME/firos/admin-PORT.sock``
+    (``ROS_HOME`` defaults to ``~/.ros``, as for ROS's own files); ConfigError when that is too long."""
+    if settings.admin_socket:
+        return settings.admin_socket
+    environ = os.environ if environ is None else environ
+    ros_home = environ.get("ROS_HOME") or os.path.join(os.path.expanduser("~"), ".ros")
+    path = os.path.join(os.path.abspath(ros_home), "firos", f"admin-{settings.server_port}.sock")
+    if len(os.fsencode(path)) > MAX_SOCKET_PATH:
+        raise ConfigError(os.path.join(settings.config_dir, "config.json"),
+                          f"the default administration socket {path} is longer than a Unix socket's path may "
+                          f"be ({MAX_SOCKET_PATH} bytes): set server.admin_socket")
+    return path
+
+
 def _service_path(value):
     value = _text("a non-empty string")(value)
     if not value.startswith("/"):
@@ -205,6 +230,7 @@ KEYS = (
     (("server", "port"), "server_port", _port),
     (("server", "address"), "server_addresses", _addresses),
     (("server", "admin_token"), "admin_token", _token),
+    (("server", "admin_socket"), "admin_socket", _socket_path),
     (("contextbroker", "address"), "broker_address", _text("a host name or address")),
     (("contextbroker", "port"), "broker_port", _port),
     (("contextbroker", "max_request_size"), "max_request_size", _size),

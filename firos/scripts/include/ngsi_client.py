@@ -11,7 +11,8 @@ are built from attributes encoded once each (`encode_attribute` gives the attrib
 sender uses to pack requests under the limit; `update_body` joins them). The request and answer shapes of each
 version are its subclass's (`ngsi_v1`, `ngsi_v2`, `ngsi_ld`, chosen once from `ngsi_version` by
 `ngsi_versions.client_for`). A client object is not shared between threads without its lock; each thread that talks
-to the broker has its own.
+to the broker has its own. Each request is told to the client's ``observer`` (``fn(status, seconds)``, the metrics)
+with its HTTP status class (``"2xx"``, ``"4xx"``, ...) or ``"timeout"`` / ``"connection"``.
 """
 
 import abc
@@ -20,6 +21,7 @@ import http.client
 import json
 import socket
 import threading
+import time
 import urllib.parse
 
 COMMAND = "COMMAND"
@@ -114,8 +116,9 @@ class NgsiClient(abc.ABC):
     version = None              # "v1", "v2" or "ld": the ngsi_version value the subclass speaks
     watches_command = False     # True: subscriptions also watch COMMAND, so that a repeated command notifies
 
-    def __init__(self, settings, timeout=5.0):
+    def __init__(self, settings, timeout=5.0, observer=None):
         self.settings = settings
+        self.observer = observer    # fn(status class or "timeout"/"connection", seconds) after each request
         self.host = settings.broker_address
         self.port = settings.broker_port
         self.type = settings.context_type
@@ -243,6 +246,25 @@ class NgsiClient(abc.ABC):
             data = strict_json(body).encode("utf-8")
         if data is not None:
             headers["Content-Type"] = "application/json"
+        started, outcome = time.monotonic(), "connection"
+        try:
+            status, resp_headers, raw = self._exchange(method, path, headers, data)
+            outcome = f"{status // 100}xx"
+        except BrokerUnavailable as exc:
+            if isinstance(exc.__context__, (socket.timeout, TimeoutError)):
+                outcome = "timeout"
+            raise
+        finally:
+            if self.observer is not None:
+                try:
+                    self.observer(outcome, time.monotonic() - started)
+                except Exception:   # a metric must never fail a request
+                    pass
+        return self._answer(status, resp_headers, raw, data, ok)
+
+    def _exchange(self, method, path, headers, data):
+        """(status, headers, raw body) of one request, on the kept-alive connection (made again once if the broker
+        had dropped it); BrokerUnavailable when the broker cannot be reached."""
         for attempt in (1, 2):
             if self._conn is None:
                 self._conn = http.client.HTTPConnection(self.host, self.port, timeout=self.timeout)
@@ -254,7 +276,7 @@ class NgsiClient(abc.ABC):
                 resp_headers = {k.lower(): v for k, v in response.getheaders()}
                 if response.will_close:
                     self.close()
-                break
+                return status, resp_headers, raw
             except (http.client.RemoteDisconnected, BrokenPipeError, ConnectionResetError,
                     http.client.CannotSendRequest, http.client.ResponseNotReady) as exc:
                 self.close()
@@ -263,6 +285,9 @@ class NgsiClient(abc.ABC):
             except (OSError, http.client.HTTPException) as exc:
                 self.close()
                 raise BrokerUnavailable(f"cannot reach the broker at {self.host}:{self.port}: {exc}") from None
+
+    def _answer(self, status, resp_headers, raw, data, ok):
+        """(status, headers, parsed JSON or None) of an answer; the BrokerError its status (or body) says."""
         text = raw.decode("utf-8", "replace")
         parsed = None
         if text.strip():

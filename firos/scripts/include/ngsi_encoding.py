@@ -37,6 +37,10 @@ Public API
     Every value FIROS sends is the message's dict plus ``firosstamp`` (seconds since the epoch, a float), first,
     as in the seed's output. ``split_firosstamp`` removes it from a received value (a message field that is itself
     called ``firosstamp`` cannot be carried) and returns the stamp, or None when absent or not a number.
+``json_safe(value) -> value``
+    ``value`` (JSON-like) with every float JSON cannot carry written as FIROS writes it into the broker:
+    ``"NaN"``, ``"Infinity"``, ``"-Infinity"``; for what FIROS answers (values read back from a broker may hold
+    them: Python's JSON parser accepts bare ``NaN``).
 ``NgsiEncodingError`` (a ``ValueError``)
     Raised for every malformed input, with a sentence saying what was wrong.
 """
@@ -52,13 +56,16 @@ __all__ = [
     "topic_to_attribute", "attribute_to_topic", "relative_topic_to_attribute", "attribute_to_relative_topic",
     "LD_ID_PREFIX", "ld_entity_id", "robot_from_ld_entity_id",
     "message_type_to_attribute_type", "attribute_type_to_message_type",
-    "with_firosstamp", "split_firosstamp",
+    "with_firosstamp", "split_firosstamp", "json_safe",
 ]
 
 
 class NgsiEncodingError(ValueError):
     """A value, name or type that cannot be encoded or decoded; the message says why."""
 
+
+# Floats JSON cannot carry, as FIROS writes them (ros_conversion writes message fields the same way).
+NON_FINITE = {"nan": "NaN", "inf": "Infinity", "-inf": "-Infinity"}
 
 # Characters Orion refuses in attribute values (and in v2 names) unless they are encoded.
 FORBIDDEN_CHARACTERS = "<>\"'=;()"
@@ -323,3 +330,18 @@ def split_firosstamp(value):
     if isinstance(stamp, bool) or not isinstance(stamp, (int, float)) or not math.isfinite(stamp):
         stamp = None
     return message_dict, (float(stamp) if stamp is not None else None)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Strict JSON out
+# ---------------------------------------------------------------------------------------------------------------
+
+def json_safe(value):
+    """``value`` with its non-finite floats (keys too) as the strings of ``NON_FINITE``; the rest as it is."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else NON_FINITE[repr(value)]
+    if isinstance(value, dict):
+        return {json_safe(key): json_safe(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(item) for item in value]
+    return value

@@ -9,6 +9,7 @@ from include.ngsi_v2 import NgsiV2Client
 CLIENTS = {"v1": NgsiV1Client, "v2": NgsiV2Client, "ld": NgsiLdClient}
 
 
-def client_for(settings, timeout=5.0):
-    """A new client (its own connection) speaking the configured ``settings.ngsi_version``."""
-    return CLIENTS[settings.ngsi_version](settings, timeout)
+def client_for(settings, timeout=5.0, observer=None):
+    """A new client (its own connection) speaking the configured ``settings.ngsi_version``; ``observer`` is told of
+    each of its requests (see ``NgsiClient``)."""
+    return CLIENTS[settings.ngsi_version](settings, timeout, observer)

@@ -18,6 +18,8 @@ from robotics_msgs.srv import FIROS_Info
 from std_msgs.msg import String
 
 from include.bridge import ApiError
+from include.log_guard import Budget, shown
+from include.ngsi_encoding import NgsiEncodingError, check_robot_name
 from include.topics import wait_for_subscribers
 
 log = logging.getLogger("firos.rcm")
@@ -36,6 +38,7 @@ class RosControl:
         self._event_thread = threading.Thread(target=self._run_events, name="firos-cb-events", daemon=True)
         self.cb_pub = None
         self._subs = []
+        self.notes = Budget(log, "lines about ROS requests refused")   # any ROS peer may publish on these topics
 
     def start(self):
         self.cb_pub = rospy.Publisher(CB_EVENT_TOPIC, CB_Event, queue_size=20)
@@ -61,8 +64,8 @@ class RosControl:
         elif event.instance_status == Robot_Event.DISCONNECTED:
             self._queue.put(("disconnect", event.instance_name))
         else:
-            log.warning("ignoring Robot_Event for %s with unknown status %d", event.instance_name,
-                        event.instance_status)
+            self.notes.warning("ignoring Robot_Event for %s with unknown status %d", shown(event.instance_name),
+                               event.instance_status)
 
     # entity events, called by the bridge
     def created(self, name):
@@ -108,11 +111,15 @@ class RosControl:
                 else:
                     self._rcm_connect(name)
             except ApiError as exc:
-                log.warning("%s %s: %s", kind, name, exc.reason)
+                self.notes.warning("%s %s: %s", kind, shown(name), shown(exc.reason))
             except Exception:  # one bad request must not stop the control thread
-                log.exception("%s %s failed", kind, name)
+                log.exception("%s %s failed", kind, shown(name))
 
     def _rcm_connect(self, name):
+        try:
+            check_robot_name(name)        # before the name goes into a service call or the log
+        except NgsiEncodingError as exc:
+            raise ApiError(400, str(exc)) from None
         try:
             rospy.wait_for_service(FIROS_INFO_SERVICE, timeout=self.service_timeout)
             answer = rospy.ServiceProxy(FIROS_INFO_SERVICE, FIROS_Info)(instance_name=name)

@@ -83,7 +83,7 @@ import struct
 import genpy
 import genpy.message
 
-from include.ngsi_encoding import NgsiEncodingError, attribute_type_to_message_type
+from include.ngsi_encoding import NON_FINITE, NgsiEncodingError, attribute_type_to_message_type
 
 __all__ = ["ConversionError", "message_to_dict", "dict_to_message", "load_message_class", "SerializedMessage",
            "json_size_lower_bound"]
@@ -134,7 +134,7 @@ _NSECS_RANGE = (0, 999999999)
 _TYPE_ALIASES = {"Header": "std_msgs/Header", "roslib/Header": "std_msgs/Header"}
 
 # Non-finite floats and their JSON-safe spellings, both ways (input matched case-insensitively).
-_NONFINITE_TO_JSON = {"nan": "NaN", "inf": "Infinity", "-inf": "-Infinity"}
+_NONFINITE_TO_JSON = NON_FINITE
 _NONFINITE_FROM_JSON = {
     "nan": float("nan"),
     "infinity": float("inf"), "+infinity": float("inf"), "inf": float("inf"), "+inf": float("inf"),

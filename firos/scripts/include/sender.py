@@ -15,6 +15,10 @@ riding alone. A broker's 413 is taken the same way: the request is halved until 
 alone and is dropped; nothing is retried for its size.
 Broker trouble: log it, keep the newest values, retry with backoff up to `retry_max_delay`, and when the broker
 answers again re-create every entity with its newest values and tell the subscriptions (`on_recovered`).
+
+What it did is counted for `/stats` and the metrics: `stats` (totals) and `skips` (values not sent, by one word of
+`SKIP_REASONS`), and each value the broker took is timed from its arrival at FIROS to the broker's answer for the
+`forward_observers` (``fn(seconds list)``, called on the sender thread; they never fail it).
 """
 
 import collections
@@ -22,6 +26,7 @@ import logging
 import threading
 import time
 
+from include.log_guard import Budget, shown
 from include.ngsi_client import COMMAND, BrokerError, BrokerUnavailable, RequestTooLarge, json_string
 from include.ngsi_encoding import FIROSSTAMP, NgsiEncodingError, split_firosstamp, with_firosstamp
 from include.ros_conversion import ConversionError, SerializedMessage, json_size_lower_bound, message_to_dict
@@ -29,6 +34,10 @@ from include.ros_conversion import ConversionError, SerializedMessage, json_size
 log = logging.getLogger("firos.sender")
 
 MAX_BATCH = 1000
+# why a value was not sent: a newer one came while it waited (superseded; rate_limited when it waited for its
+# topic's max_rate or pub_frequency), it was too big, it could not be converted, the broker refused the update
+# that carried it (4xx), or its topic or robot stopped being mapped while it waited
+SKIP_REASONS = ("superseded", "rate_limited", "too_large", "conversion_error", "refused", "unmapped")
 OWN_STAMPS_KEPT = 64
 TOO_LARGE_LOG_INTERVAL = 60.0      # seconds between two log lines about one attribute's values being too big
 SMALL_VALUE = 64 * 1024            # serialized bytes: smaller values of a batch go before any bigger one
@@ -70,6 +79,9 @@ class Sender:
         self._stop = False
         self.stats = {"offered": 0, "forwarded": 0, "skipped": 0, "requests": 0, "errors": 0,
                       "conversion_errors": 0, "too_large": 0}
+        self.skips = collections.Counter({reason: 0 for reason in SKIP_REASONS})
+        self.forward_observers = []        # fn(list of seconds from a value's arrival to the broker's answer)
+        self.notes = Budget(log, "lines about values not sent")
         self._thread = threading.Thread(target=self._run, name="firos-sender", daemon=True)
 
     # --- called from other threads ----------------------------------------------------------------------------
@@ -92,6 +104,9 @@ class Sender:
             self.stats["offered"] += 1
             if key in self._pending:
                 self.stats["skipped"] += 1
+                interval = self._limits.get(key, self._no_limits)[0]
+                held = interval and time.monotonic() < self._last_sent.get(key, -1e9) + interval
+                self.skips["rate_limited" if held else "superseded"] += 1
             self._pending[key] = (atype, msg, stamp)
             self._cond.notify()
 
@@ -106,6 +121,7 @@ class Sender:
         """Forget the robot's waiting values and limits and delete its entity."""
         with self._cond:
             self._robots.pop(robot, None)
+            self.skips["unmapped"] += sum(1 for key in self._pending if key[0] == robot)
             for table in (self._pending, self._limits, self._too_large_values):
                 for key in [k for k in table if k[0] == robot]:
                     del table[key]
@@ -125,6 +141,7 @@ class Sender:
         with self._cond:
             if self._pending.pop((robot, attr), None) is not None:
                 self.stats["skipped"] += 1
+                self.skips["unmapped"] += 1
             self._last_values.get(robot, {}).pop(attr, None)
             self._limits.pop((robot, attr), None)
 
@@ -334,7 +351,8 @@ class Sender:
                 attr, atype, with_firosstamp(msg if isinstance(msg, dict) else message_to_dict(msg), stamp))
         except (ConversionError, NgsiEncodingError, ValueError) as exc:
             self.stats["conversion_errors"] += 1
-            log.error("cannot convert a message of %s.%s: %s", robot, attr, exc)
+            self.skips["conversion_error"] += 1
+            self.notes.log(logging.ERROR, "cannot convert a message of %s.%s: %s", robot, attr, shown(str(exc)))
             return None
         if len(text) > SMALL_VALUE or (max_size is not None and len(text) > max_size):
             cap, why = self._cap(robot, attr, max_size)
@@ -442,14 +460,17 @@ class Sender:
             return [], False
         except (BrokerError, ValueError) as exc:
             self.stats["errors"] += 1
-            log.error("the context broker refused an update of %s: %s", ", ".join(sorted(encoded)), exc)
+            self.skips["refused"] += sum(1 for item in items if item[3] is not None)
+            self.notes.log(logging.ERROR, "the context broker refused an update of %s: %s",
+                           shown(", ".join(sorted(encoded))), exc)
             return [], False
         return list(items), True
 
     def _record(self, sent):
         """Remember what the broker took: the newest value of each attribute (re-sent when the entity is made
         again), when it was sent (rate limits) and its firosstamp (FIROS's own updates coming back)."""
-        now = time.monotonic()
+        now, wall = time.monotonic(), time.time()
+        latencies = []
         with self._cond:
             for robot, attr, text, stamp in sent:
                 self._last_values.setdefault(robot, {})[attr] = text
@@ -459,12 +480,19 @@ class Sender:
                 self._last_sent[key] = now
                 self._own_stamps.setdefault(key, collections.deque(maxlen=OWN_STAMPS_KEPT)).append(stamp)
                 self.stats["forwarded"] += 1
+                latencies.append(wall - stamp)
+        for observe in list(self.forward_observers) if latencies else ():
+            try:
+                observe(latencies)
+            except Exception:   # a metric must never stop the sender
+                log.exception("a forward observer failed")
 
     def _too_large(self, robot, attr, size, why, estimated=False):
         """Count a value not sent for its size; log it at most once a TOO_LARGE_LOG_INTERVAL per attribute."""
         now = time.monotonic()
         with self._cond:
             self.stats["too_large"] += 1
+            self.skips["too_large"] += 1
             entry = self._too_large_values.setdefault((robot, attr), {"count": 0, "size": 0, "logged": None})
             entry["count"] += 1
             entry["size"] = size

@@ -103,12 +103,6 @@ class TopicHandler:
         log.info("publishing broker commands of %s on %s (%s)", robot, topic, msg_type)
         return pub
 
-    def publisher_type(self, topic):
-        """The message type FIROS's Publisher of ``topic`` has ("pkg/Type"), or None when it has none."""
-        with self._lock:
-            entry = self._publishers.get(topic)
-        return entry[2] if entry is not None else None
-
     def publish(self, robot, topic, msg_type, msg, known_subscribers):
         pub = self.publisher(robot, topic, msg_type, known_subscribers)
         with self._lock:
@@ -129,7 +123,7 @@ class TopicHandler:
             log.info("no longer forwarding %s of %s", topic, robot)
 
     def drop_publisher(self, topic):
-        """Remove FIROS's Publisher of ``topic`` (a later command creates it again, with the type it names)."""
+        """Remove FIROS's Publisher of ``topic`` (a later command creates it again, with the type it has then)."""
         with self._lock:
             entry = self._publishers.pop(topic, None)
         if entry is not None:

@@ -4,11 +4,14 @@ Format: {"<robot regex>": {"publisher": [topic regexes], "subscriber": [topic re
 point of view: publisher = broker → ROS, subscriber = ROS → broker. Robot names and topic names (relative to
 the robot's namespace, e.g. "move_base/goal") must match a regex entirely (re.fullmatch). A subscriber entry may
 also be an object naming limits for the topics it matches: {"topic": "<regex>", "max_rate": <per second>,
-"max_size": <bytes>} (both optional; where several entries match, the smallest of each counts). An entry whose
-pattern is the topic's own name, with no regex characters, "names it plainly" (`names_plainly`): the rule for
-images and point clouds (`discovery.LARGE_MESSAGE_TYPES`). Owns validation, matching, limits and the in-memory
-edits of the HTTP API (write merges, an entry replacing the one with the same pattern; remove deletes the entries
-with the given patterns; restore reloads the file).
+"max_size": <bytes>} (both optional; where several entries match, the smallest of each counts). A publisher entry
+may be an object declaring the message type of a topic it names plainly, {"topic": "p1", "type": "std_msgs/String"}:
+the one way a topic absent from the ROS graph can be commanded (`declared_type`; docs/DECISIONS.md, "FIROS commands
+only topics in the graph"). An entry whose pattern is the topic's own name, with no regex characters, "names it
+plainly" (`names_plainly`): the rule for images and point clouds (`discovery.LARGE_MESSAGE_TYPES`) and for declared
+types. Owns validation, matching, limits, declared types and the in-memory edits of the HTTP API (write merges, an
+entry replacing the one with the same pattern; remove deletes the entries with the given patterns; restore reloads
+the file).
 
 Python's `re` backtracks, and there is no `re2` in Debian to swap in, so a pattern is accepted only in shapes
 whose matching cost stays small (docs/SECURITY.md, "FIROS"): at most MAX_PATTERN characters, no backreferences,
@@ -31,6 +34,7 @@ except ImportError:                         # older Pythons name them sre_consta
     import sre_parse
 
 from include.config import ConfigError, read_json
+from include.ngsi_encoding import NgsiEncodingError, attribute_type_to_message_type
 
 KINDS = ("publisher", "subscriber")
 LIMIT_KEYS = ("max_rate", "max_size")
@@ -73,8 +77,11 @@ def validate(data):
 
 
 def _entry(topic, robot, kind):
-    """A validated topic entry: a regex (str), or for subscriber topics {"topic", "max_rate", "max_size"}."""
+    """A validated topic entry: a regex (str), or for subscriber topics {"topic", "max_rate", "max_size"}, or for
+    publisher topics {"topic": a plain name, "type": "pkg/Type"} (the type written "pkg/Type" however given)."""
     where = f"\"{robot}\".{kind}"
+    if isinstance(topic, dict) and kind == "publisher":
+        return _typed_entry(topic, where)
     if isinstance(topic, dict) and kind == "subscriber":
         unknown = set(topic) - {"topic"} - set(LIMIT_KEYS)
         if unknown or not isinstance(topic.get("topic"), str):
@@ -90,10 +97,25 @@ def _entry(topic, robot, kind):
         _compile(topic["topic"], f"topic regex {topic['topic']!r} of {where}")
         return dict(topic)
     if not isinstance(topic, str):
-        raise WhitelistError(f"{where} must be a list of topic regexes (strings)"
-                             + ("; limits (objects) are for subscriber topics" if isinstance(topic, dict) else ""))
+        raise WhitelistError(f"{where} must be a list of topic regexes (strings) or objects")
     _compile(topic, f"topic regex {topic!r} of {where}")
     return topic
+
+
+def _typed_entry(entry, where):
+    """A publisher entry given as an object: {"topic": a plain topic name, "type": its message type}."""
+    name, declared = entry.get("topic"), entry.get("type")
+    if set(entry) != {"topic", "type"} or not isinstance(name, str) or not isinstance(declared, str):
+        raise WhitelistError(f"an entry of {where} given as an object needs \"topic\" (a topic name) and "
+                             f"\"type\" (its message type, like \"std_msgs/String\"), nothing else")
+    if len(name) > MAX_NAME or not _PLAIN_TOPIC.fullmatch(name):
+        raise WhitelistError(f"\"topic\" {name[:80]!r} of {where} must be the topic's own name (letters, digits, "
+                             f"_ and /), not a regular expression, when it declares a type")
+    try:
+        return {"topic": name, "type": attribute_type_to_message_type(declared)}
+    except NgsiEncodingError:
+        raise WhitelistError(f"\"type\" {declared[:80]!r} of {name!r} in {where} is not a message type like "
+                             f"\"std_msgs/String\"") from None
 
 
 def pattern_of(entry):
@@ -160,12 +182,10 @@ class Whitelist:
         self._lock = threading.Lock()
         self._data = {}
         self._compiled = []
-        self._configured = {}           # the whitelist as configured (file or constructor), not HTTP edits
         if data is None:
             self.restore()
         else:
             self._set(validate(data))
-            self._configured = self._data
 
     @classmethod
     def load(cls, config_dir):
@@ -182,7 +202,6 @@ class Whitelist:
             raise ConfigError(self.path, str(exc)) from None
         with self._lock:
             self._set(clean)
-            self._configured = clean
 
     def _set(self, clean):
         self._data = clean
@@ -229,15 +248,24 @@ class Whitelist:
                     del merged[robot]
             self._set(merged)
 
-    def configured_literal(self, robot, topic, kind="publisher"):
-        """True when the configured whitelist (whitelist.json as last loaded, never an HTTP edit) lists ``topic``
-        under ``kind`` as a plain name (no regex) for a robot regex that matches ``robot``."""
-        if len(robot) > MAX_NAME or not _PLAIN_TOPIC.fullmatch(topic):
-            return False
+    def declared_types(self, robot):
+        """{topic: "pkg/Type"} of the publisher topics whose type entries matching ``robot`` declare; a topic
+        declared with two different types is left out (which one is meant cannot be told)."""
+        found = {}
+        if len(robot) > MAX_NAME:
+            return found
         with self._lock:
-            configured = self._configured       # replaced whole on restore, never changed in place
-        return any(topic in map(pattern_of, entry.get(kind, [])) and re.fullmatch(robot_rx, robot)
-                   for robot_rx, entry in configured.items())
+            compiled = self._compiled
+        for rx, topics in compiled:
+            if rx.fullmatch(robot):
+                for _, entry in topics["publisher"]:
+                    if isinstance(entry, dict):
+                        found.setdefault(entry["topic"], set()).add(entry["type"])
+        return {topic: types.pop() for topic, types in found.items() if len(types) == 1}
+
+    def declared_type(self, robot, topic):
+        """The message type ("pkg/Type") a publisher entry matching ``robot`` declares for ``topic``, or None."""
+        return self.declared_types(robot).get(topic)
 
     def robot_allowed(self, robot):
         if len(robot) > MAX_NAME:

@@ -1,7 +1,7 @@
 """bridge.Firos alone, its collaborators faked (no ROS master, no broker): connecting from a graph snapshot, what a
-notification publishes (every command, repeats included; FIROS's own values and unmapped names never), COMMAND
-written back once a command is taken, whitelist edits on robots already mapped, a topic changing type, and the
-NGSI-LD entity ids.
+notification publishes (every command, repeats included; FIROS's own values and unmapped names never; topics absent
+from the graph only with the type the whitelist declares), the commands counted by outcome, COMMAND written back
+once a command is taken, whitelist edits on robots already mapped, a topic changing type, and the NGSI-LD entity ids.
 """
 
 import pytest
@@ -49,6 +49,9 @@ class FakeSubscriptions:
     def remove(self, robot):
         self.wanted.pop(robot, None)
 
+    def ids(self):
+        return {robot: f"sub-{robot}" for robot in self.wanted}
+
 
 class FakeTopics:
     def __init__(self):
@@ -67,10 +70,6 @@ class FakeTopics:
 
     def drop_publisher(self, topic):
         self.publishers_dropped.append(topic)
-
-    def publisher_type(self, topic):
-        types = [t for p, t, _ in self.published if p == topic and p not in self.publishers_dropped]
-        return types[-1] if types else None
 
     def publish(self, robot, topic, msg_type, msg, known):
         self.published.append((topic, msg_type, msg))
@@ -92,7 +91,8 @@ def make(version="v2", whitelist=None, graph=None):
     settings = Settings(config_dir="/nowhere", environment="test", broker_address="127.0.0.1",
                         ngsi_version=version)
     wl = Whitelist("/nowhere/whitelist.json", whitelist or {
-        "bot": {"publisher": ["cmd", "go"], "subscriber": ["pose", "odom"]}})
+        "bot": {"publisher": ["cmd", {"topic": "go", "type": "std_msgs/Int32"}, "stop"],
+                "subscriber": ["pose", "odom"]}})
     graph = FakeGraph(graph if graph is not None else {
         "/bot/pose": ("geometry_msgs/Pose2D", True, False),
         "/bot/odom": ("geometry_msgs/Pose2D", True, False),
@@ -122,6 +122,7 @@ def test_connect_maps_whitelisted_topics_and_subscribes_to_publisher_attributes(
     firos = make()
     assert set(firos.robots) == {"bot"}
     assert firos.topics.subscribed == {"/bot/pose": "geometry_msgs/Pose2D", "/bot/odom": "geometry_msgs/Pose2D"}
+    # the graph's publisher topics and the declared ones; "stop" when a node uses it
     assert firos.subscriptions.wanted == {"bot": ["cmd", "go"]}
     assert ("create", "bot") in firos.sender.calls
 
@@ -151,18 +152,52 @@ def test_what_comes_back_without_a_command_is_not_published():
     assert firos.topics.published == [] and ("taken", "bot") not in firos.sender.calls
 
 
-def test_a_plain_whitelist_name_is_commanded_with_the_type_the_broker_names():
+def test_a_topic_absent_from_the_graph_is_commanded_only_with_the_type_the_whitelist_declares():
     firos = make()
     published = firos.handle_notification(v2_note("bot", ["go"], go=("std_msgs.msg.Int32", {"data": 3})))
     assert published == {"bot": ["go"]} and firos.topics.published[0][:2] == ("/bot/go", "std_msgs/Int32")
-    with pytest.raises(ApiError) as info:
-        firos.handle_notification(v2_note("bot", ["go"], go=("Text", {"data": 3})))
-    assert info.value.status == 400
-    # the first command chose the type; a later one cannot switch it (issue 12 row 4)
+    # an attribute type that names no message type: the declared type is used
+    assert firos.handle_notification(v2_note("bot", ["go"], go=("Text", {"data": 4}))) == {"bot": ["go"]}
+    assert firos.topics.published[1][:2] == ("/bot/go", "std_msgs/Int32")
+    # another type than the declared one is refused
     with pytest.raises(ApiError) as info:
         firos.handle_notification(v2_note("bot", ["go"], go=("std_msgs.msg.String", {"data": "x"})))
-    assert info.value.status == 400 and "already publishes /bot/go as std_msgs.msg.Int32" in info.value.reason
-    assert len(firos.topics.published) == 1
+    assert info.value.status == 400 and "carries std_msgs.msg.Int32" in info.value.reason
+    assert len(firos.topics.published) == 2
+
+
+def test_a_whitelisted_topic_absent_from_the_graph_is_never_commanded_with_the_callers_type(firos_log):
+    firos = make()                      # "stop": a plain publisher entry, no node uses /bot/stop
+    note = v2_note("bot", ["stop"], stop=("geometry_msgs.msg.Twist", {"linear": {"x": 9.0}}))
+    for _ in range(30):
+        assert firos.handle_notification(note) == {}
+    assert firos.topics.published == [] and ("taken", "bot") not in firos.sender.calls
+    said = [r.getMessage() for r in firos_log.records if "'/bot/stop' is not in the ROS graph" in r.getMessage()]
+    assert 1 <= len(said) <= 10, said              # through the budget: at most 10 lines in a window
+    assert firos.commands["not_in_graph"] == 30
+    # once a node uses the topic, its own type is the one commands take
+    firos.graph.graph["/bot/stop"] = ("std_msgs/Empty", False, True)
+    firos.scan()
+    with pytest.raises(ApiError):
+        firos.handle_notification(note)
+    assert firos.handle_notification(v2_note("bot", ["stop"], stop=("std_msgs.msg.Empty", {}))) == {"bot": ["stop"]}
+    assert firos.topics.published[0][:2] == ("/bot/stop", "std_msgs/Empty")
+
+
+def test_commands_are_counted_by_outcome():
+    firos = make()
+    firos.handle_notification(v2_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": "x"})))
+    firos.handle_notification(v2_note("bot", ["pose", "nothing"], pose=("geometry_msgs.msg.Pose2D", {"x": 1.0}),
+                                      nothing=("std_msgs.msg.String", {})))
+    firos.handle_notification(v2_note("nobody", ["cmd"], cmd=("std_msgs.msg.String", {})))
+    firos.sender.own.add(("bot", "cmd", 12.5))
+    firos.handle_notification(v2_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"firosstamp": 12.5})))
+    with pytest.raises(ApiError):
+        firos.handle_notification(v2_note("bot", ["cmd"], cmd=("std_msgs.msg.String", {"data": 5})))
+    with pytest.raises(ApiError):
+        firos.handle_notification({"not": "a notification"})
+    assert firos.commands == {"published": 1, "not_whitelisted": 2, "not_in_graph": 0, "own_update": 1,
+                              "unknown_robot": 1, "refused": 2}
 
 
 def test_a_bad_value_publishes_nothing_of_the_notification():

@@ -1,5 +1,5 @@
-"""FIROS's `include/config.py`, the keys that decide who may reach FIROS: `server.address` and
-`server.admin_token`."""
+"""FIROS's `include/config.py`, the keys that decide who may reach FIROS: `server.address`, `server.admin_token`
+and `server.admin_socket` (and where the administration socket is without it)."""
 
 import pytest
 
@@ -21,3 +21,19 @@ def test_server_address_and_admin_token_keys(tmp_path):
         with pytest.raises(cfg.ConfigError) as info:
             _settings(tmp_path, **bad)
         assert "server." in str(info.value) and "\n" not in str(info.value)
+
+
+def test_the_administration_socket_is_configured_or_under_ros_home(tmp_path):
+    assert _settings(tmp_path, admin_socket="/run/firos/admin.sock").admin_socket == "/run/firos/admin.sock"
+    for bad in ("relative/admin.sock", 5, "/" + "x" * 120):
+        with pytest.raises(cfg.ConfigError) as info:
+            _settings(tmp_path, admin_socket=bad)
+        assert "server.admin_socket" in str(info.value) and "\n" not in str(info.value)
+    settings = _settings(tmp_path)
+    assert cfg.admin_socket_path(settings, {"ROS_HOME": "/home/op/.ros"}) == "/home/op/.ros/firos/admin-10100.sock"
+    settings.server_port = 10101                           # -P changes the port: the default follows it
+    assert cfg.admin_socket_path(settings, {}).endswith("/.ros/firos/admin-10101.sock")
+    with pytest.raises(cfg.ConfigError, match="set server.admin_socket"):
+        cfg.admin_socket_path(settings, {"ROS_HOME": "/" + "h" * 100})
+    settings.admin_socket = "/run/firos/admin.sock"
+    assert cfg.admin_socket_path(settings, {"ROS_HOME": "/" + "h" * 100}) == "/run/firos/admin.sock"

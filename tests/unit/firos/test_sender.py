@@ -88,3 +88,24 @@ def test_sender_retries_a_broker_answering_500_and_keeps_the_newest(tmp_path):
     finally:
         sender.stop()
         server.close()
+
+
+def test_values_not_sent_are_counted_by_reason_and_sent_ones_timed(tmp_path, broker):
+    settings = settings_for(tmp_path, broker.port)
+    sender = Sender(client_for(settings), settings)
+    timed = []
+    sender.forward_observers.append(timed.extend)
+    sender.forward_observers.append(lambda latencies: 1 / 0)      # a failing observer never stops the sender
+    sender.create("bot", {})
+    sender.offer("bot", "a", "std_msgs.msg.Int32", {"data": 1}, stamp=time.time())
+    sender.offer("bot", "a", "std_msgs.msg.Int32", {"data": 2}, stamp=time.time())   # before any send: superseded
+    sender.offer("bot", "b", "std_msgs.msg.Int32", {"data": 3})
+    sender.forget("bot", "b")                                                          # unmapped while waiting
+    sender.start()
+    try:
+        wait_until(lambda: sender.snapshot_stats()["forwarded"] == 1, message="the newest value of a sent")
+        assert dict(sender.skips) == {"superseded": 1, "rate_limited": 0, "too_large": 0, "conversion_error": 0,
+                                      "refused": 0, "unmapped": 1}
+        assert len(timed) == 1 and 0 <= timed[0] < 10
+    finally:
+        sender.stop()

@@ -1,5 +1,7 @@
-"""FIROS's `include/whitelist.py`, its defences: the regex shape check, the length caps, and the rule that only
-plain names of the configured whitelist.json may be commanded outside the ROS graph."""
+"""FIROS's `include/whitelist.py`, its defences: the regex shape check, the length caps, and the types a whitelist
+declares (the only way a topic outside the ROS graph is commanded; never with a caller's type)."""
+
+import re
 
 import pytest
 
@@ -39,14 +41,23 @@ def test_long_patterns_and_names():
     assert whitelist.topic_kinds("r1", "p" * 257) == set()
 
 
-def test_only_plain_names_of_the_configured_whitelist_may_be_commanded_outside_the_graph(tmp_path):
-    config = write_config(str(tmp_path), 1026, whitelist={"end_end_test": {"publisher": ["p1", "q.*"]}})
+def test_a_type_is_declared_only_for_a_plain_publisher_topic_and_is_the_one_commands_take(tmp_path):
+    config = write_config(str(tmp_path), 1026, whitelist={"end_end_test": {"publisher": [
+        {"topic": "p1", "type": "std_msgs.msg.String"}, "p2", "q.*"]}})
     whitelist = Whitelist.load(config)
-    assert whitelist.configured_literal("end_end_test", "p1")
-    assert not whitelist.configured_literal("end_end_test", "q1")        # a regex entry
-    assert not whitelist.configured_literal("other", "p1")
-    whitelist.write({"end_end_test": {"publisher": ["p2"]}})
-    assert "publisher" in whitelist.topic_kinds("end_end_test", "p2")
-    assert not whitelist.configured_literal("end_end_test", "p2")        # an HTTP edit
+    assert whitelist.declared_type("end_end_test", "p1") == "std_msgs/String"   # either spelling, kept as pkg/Type
+    assert whitelist.snapshot()["end_end_test"]["publisher"][0] == {"topic": "p1", "type": "std_msgs/String"}
+    assert whitelist.declared_type("end_end_test", "p2") is None                 # a plain name declares nothing
+    assert whitelist.declared_type("end_end_test", "q1") is None and whitelist.declared_type("other", "p1") is None
+    whitelist.write({"end_end_test": {"publisher": [{"topic": "p3", "type": "geometry_msgs/Twist"}]}})
+    assert whitelist.declared_types("end_end_test") == {"p1": "std_msgs/String", "p3": "geometry_msgs/Twist"}
+    whitelist.write({"end_.*": {"publisher": [{"topic": "p1", "type": "std_msgs/Int32"}]}})
+    assert whitelist.declared_type("end_end_test", "p1") is None                 # two types: which is meant?
     whitelist.restore()
-    assert whitelist.configured_literal("end_end_test", "p1")
+    assert whitelist.declared_types("end_end_test") == {"p1": "std_msgs/String"}
+    for bad, problem in (({"topic": "p.*", "type": "std_msgs/String"}, "not a regular expression"),
+                         ({"topic": "p1", "type": "String"}, "is not a message type"),
+                         ({"topic": "p1"}, "needs \"topic\""),
+                         ({"topic": "p1", "type": "std_msgs/String", "max_rate": 1}, "nothing else")):
+        with pytest.raises(WhitelistError, match=re.escape(problem)):
+            whitelist.write({"end_end_test": {"publisher": [bad]}})
