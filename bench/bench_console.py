@@ -1,4 +1,4 @@
-"""Console benchmark: how long a state change takes to show on the page, with 100 robots provisioned (issue 11).
+"""Console benchmark: how long a state change takes to show on the page, with 100 robots provisioned.
 
 Starts a real master (``/usr/bin/python3 -m rcm_platform --home TMP``) on loopback, provisions a service logic
 with 50 service nodes and 100 robots with it through the RDAPI, opens the console in a real headless Chromium
@@ -219,7 +219,7 @@ def main(argv=None):
         f"Uncaught JavaScript errors: {len(errors)}.",
         "",
         f"Load average (1 min) of the machine: {load_before:.1f} before, {load_after:.1f} after (other "
-        f"engineers' tests were running; the machine has {os.cpu_count()} cores).",
+        f"work was running; the machine has {os.cpu_count()} cores).",
         "",
         f"Target: p99 from a change to the page under {TARGET_P99_S * 1000:.0f} ms: **{verdict}** "
         f"(the largest p99 of the page rows: {p99 * 1000:.0f} ms). The pushes are coalesced for 50 ms (`rcmp_console.COALESCE`), which is most of "

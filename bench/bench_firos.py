@@ -371,7 +371,8 @@ def big_values_section(result, seconds, load_before):
     p99 = percentile(result["loaded"][0], 0.99)
     width, height, _ = CAMERA
     return "\n".join([
-        f"One robot (NGSI v2, the stand-in broker answering 413 above 1 MB as Orion does): a `Pose2D` at 10 Hz, "
+        f"One robot (NGSI v2, the stand-in broker of docs/STANDIN_BROKER.md answering 413 above 1 MB as Orion "
+        "does): a `Pose2D` at 10 Hz, "
         f"each a new value timed from its publication to the broker's notification of it; then the same beside a "
         f"whitelisted camera (`sensor_msgs/Image` {width}x{height} rgb8, {result['camera_size']:,} bytes "
         f"serialized, 15 Hz) and a {MAP_CELLS:,} x {MAP_CELLS:,} `nav_msgs/OccupancyGrid` "
@@ -433,7 +434,8 @@ def main(argv=None):
         return "met" if ok(value) else "NOT met"
 
     lines = [
-        "FIROS with the stand-in broker, ROS master and this benchmark's rospy node on loopback "
+        "FIROS with the stand-in broker (docs/STANDIN_BROKER.md), ROS master and this benchmark's rospy node on "
+        "loopback "
         f"(`bench/bench_firos.py`{' --quick' if quick else ''}), once with NGSI v2 and once with NGSI-LD (a fresh "
         f"broker and FIROS each); load average at the end {load[0]:.1f} / {load[1]:.1f} (1 / 5 min): the figures "
         "drop when other work shares the two cores.",

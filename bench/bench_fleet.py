@@ -58,7 +58,7 @@ from tests.support.rcmp_agent import RcmpAgent  # noqa: E402
 
 OPTIONS = ("--quick",)
 TARGET_N = 2000
-TARGETS = {   # figure -> (limit, unit) for N = 2,000 over 20 servers (the issue's table)
+TARGETS = {   # figure -> (limit, unit) for N = 2,000 over 20 servers (the fleet's targets)
     "pair_all": (60.0, "s"), "hello_p99": (0.200, "s"), "heartbeat_p99": (0.100, "s"), "cpu": (25.0, "%"),
     "rss": (400.0, "MB"), "read_p99": (0.100, "s"), "console_p99": (1.0, "s"), "failover": (15.0, "s"),
     "lost": (0, ""),
@@ -584,7 +584,7 @@ def report(results, args):
         f"runs. A server VM answers `start_items` after {args.server_start:g} s (its ROS master and S node), a "
         f"robot after {args.robot_start:g} s (its R node). Every robot: one S-side and one R-side node; {arrival}. A "
         f"console event stream is open throughout. The master and the simulator share this machine's "
-        f"{os.cpu_count()} cores (and other engineers' work: load averages below).",
+        f"{os.cpu_count()} cores (and other work: load averages below).",
         "",
         "| figure | " + " | ".join(f"N = {r['n']:,}" for r in results) + " | target (N = 2,000) |",
         "| --- | " + " | ".join("---:" for _ in results) + " | --- |",

@@ -1,4 +1,4 @@
-"""Flood benchmark (issue 12, item 4): the RDAPI stays answerable while the agent port is flooded to its cap.
+"""Flood benchmark: the RDAPI stays answerable while the agent port is flooded to its cap.
 
 Starts a real master (``/usr/bin/python3 -m rcm_platform --home TMP``) on loopback with the open-file limit the
 installed daemon gives it (``rcmpd``: 65536, or this machine's hard limit if lower), provisions 100 robots, then

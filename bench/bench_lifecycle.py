@@ -1,4 +1,4 @@
-"""Robot lifecycle benchmark (issue 4, item 8): time to pair beside its floor, and memory per service space.
+"""Robot lifecycle benchmark: time to pair beside its floor, and memory per service space.
 
 (a) Time from starting a robot agent (``python3 -m rcm_platform --home DIR``) to ``paired: true`` in
     ``GET /platform_instance/read``, for a service logic with one S-side and one R-side node (``talker.py`` of the
@@ -13,7 +13,7 @@
     minus before any connected, divided by the number of spaces. Target: under 60 MB per service space.
 
 (herd) ``--herd``: N robots (default 100; one S-side and one R-side talker each) started at once against one
-    master (issue 10 item 1): the time until all are paired (target: within 90 s), p50/p99 per robot from its
+    master: the time until all are paired (target: within 90 s), p50/p99 per robot from its
     start to paired, sessions lost on the way (target: zero), and the hello answer time under that load, as the
     robots see it (target: p99 under 1 s). Section ``lifecycle_herd``.
 
@@ -392,7 +392,7 @@ def main(argv=None):
                                                       "temporary folder, removed afterwards)")
     parser.add_argument("--no-write", action="store_true", help="print, do not write docs/PERFORMANCE.md")
     parser.add_argument("--herd", action="store_true",
-                        help="only the herd: --robots robots (default 100) started at once (issue 10 item 1)")
+                        help="only the herd: --robots robots (default 100) started at once")
     parser.add_argument("--max-starting", type=int, metavar="N",
                         help="--herd: the master's max_starting_spaces (default: its own default)")
     parser.add_argument("--timeout", type=float, default=120.0,

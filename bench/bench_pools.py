@@ -1,11 +1,11 @@
-"""Shared pools benchmark (issue 18 item 2): a legitimate client from another address is served while one address
+"""Shared pools benchmark: a legitimate client from another address is served while one address
 holds its whole share of each pool of a real master.
 
 Starts a real master (``/usr/bin/python3 -m rcm_platform --home TMP``) on loopback and measures, from 127.0.0.9,
 ``SAMPLES`` times each: a console event stream's first ``snapshot`` (a new stream each time), a
 ``GET /platform_instance/read`` on a new connection, and a hello's answer on the agent port (a name that is not
 provisioned: the refusal is the answer). Once quiet, once with the pools held: 64 console streams opened from
-127.0.0.2 and 127.0.0.3 and never read (issue 18 row 3), the RDAPI's 32 connections of 127.0.0.4 opened and never
+127.0.0.2 and 127.0.0.3 and never read, the RDAPI's 32 connections of 127.0.0.4 opened and never
 used, and the agent port's 8 connections of 127.0.0.5 that never say hello (opened again as the master closes
 them).
 

@@ -4,7 +4,7 @@ Starts a real master (``/usr/bin/python3 -m rcm_platform --home TMP``) on loopba
 and 100 robots through the RDAPI, then measures with ``wrk`` (Debian's HTTP load tool; keep-alive connections):
 ``GET /platform_instance/read``, ``GET /service_logic/read?slg_name=...`` (a Lua script spreads the requests over
 all 20 names) and ``POST /platform_instance/provisioning`` (a Lua script makes every name unique). Results go to
-docs/PERFORMANCE.md through ``bench.report.write_section``. Target (issue 3): at least 1500 reads/s with p99 under
+docs/PERFORMANCE.md through ``bench.report.write_section``. Target: at least 1500 reads/s with p99 under
 20 ms on the 2-core build machine. ``main`` returns 1 when a target is missed.
 """
 

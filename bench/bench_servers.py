@@ -1,4 +1,4 @@
-"""Server VMs benchmark (issue 10 items 2 and 3): spreading robots over the master and two server VMs, and moving
+"""Server VMs benchmark: spreading robots over the master and two server VMs, and moving
 the spaces of a server VM that dies.
 
 (spread) ``--robots`` robots (default 100; one S-side and one R-side ``talker.py`` each) started at once against a

@@ -1,4 +1,4 @@
-"""VPN benchmark (issue 9): time from a robot's OpenVPN start to paired, over the platform's own VPN, beside its floor.
+"""VPN benchmark: time from a robot's OpenVPN start to paired, over the platform's own VPN, beside its floor.
 
 A master and a robot as test hosts (network namespaces, ``tests/support/vpn_hosts.py``), each agent with its
 default configuration running its own OpenVPN (the managed VPN), service logic as in bench_lifecycle (one S-side
@@ -6,7 +6,7 @@ and one R-side ``robotics_test/talker.py``). Measured, N runs each (p50):
 
 - **VPN pairing**: the robot agent started (``python3 -m rcm_platform``, which starts OpenVPN first) until the
   master logs the robot ``paired``; and, from the two agents' logs, the robot's ``starting OpenVPN`` line until
-  that ``paired`` line (the figure the issue asks for).
+  that ``paired`` line (the figure compared with the floor below).
 - **Floor**: a bare ``openvpn --config client.conf`` in the robot's host until ``tun0`` has its address (OpenVPN
   connect), plus the loopback pairing figure measured in the same run (bench_lifecycle's (a): a robot agent on
   127.0.0.2 started until paired, no VPN), timed to the same end (the master's ``paired`` log line).

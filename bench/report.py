@@ -14,7 +14,8 @@ import re
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PERFORMANCE_MD = os.path.join(ROOT, "docs", "PERFORMANCE.md")
 HEADER = ("# Performance\n\nWritten by the benchmarks in `bench/` (`make bench` runs them all, `make bench-NAME` one "
-          "of them). Each section says the machine and the date it was measured on; targets come from the issues.\n")
+          "of them). Each section says the machine and the date it was measured on; targets are the ones the "
+          "platform is built to meet.\n")
 
 
 def percentile(values, fraction):
