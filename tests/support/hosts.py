@@ -16,8 +16,8 @@ What a ``Lan`` builds (root only; CAP_NET_ADMIN and CAP_SYS_ADMIN):
   inside that host's mount namespace only, by an overlayfs whose lower layer is the real directory and whose
   upper layer is a per-host directory under the run's state folder. An installer run in the host therefore sees
   the machine's files (Python, ROS, ``/usr/bin``) and writes only to its own copy: two hosts can install
-  different zips into ``/opt/rcm-platform`` at once, and the real ``/opt``, ``/usr/local``, ``/etc`` are never
-  touched (no ``flock /work/install.lock`` needed). Overlays are used rather than bind mounts of empty folders
+  different zips into ``/opt/rcm-platform`` at once, and this machine's real installation paths (``/opt``,
+  ``/usr/local``, ``/etc``) are never touched. Overlays are used rather than bind mounts of empty folders
   because an installer needs the real content beside its own (``/etc/init.d/*``, ``/usr/lib/python3``);
   ``Host.private_path(path)`` names the host's upper copy of a path, to inspect what the host wrote. Below the
   private folders the host does not see this machine's own rcm-platform installation (``RCM_INSTALLATION``,

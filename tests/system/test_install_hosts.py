@@ -2,7 +2,7 @@
 
 Each host has its own network namespace (``eth0`` on the test LAN) and its own copy of the folders an installation
 writes (overlays over /opt, /usr/local, /etc, /root, /var/log, /run and /home inside the host's mount namespace),
-so the real paths of this machine are never touched and no ``flock /work/install.lock`` is needed; every daemon
+so this machine's real installation paths are never touched, whatever else runs at the same time; every daemon
 is stopped and every namespace removed at the end, even when a test fails.
 
 - The master zip and the robot zip installed with the VPN flags into two hosts, ``service rcmpd start`` in each:
