@@ -12,7 +12,7 @@ What a ``Lan`` builds (root only; CAP_NET_ADMIN and CAP_SYS_ADMIN):
   infinity``. ``ip netns exec`` unshares the mount namespace and mounts a ``/sys`` that shows the host's own
   interfaces; every command of the host then runs through ``nsenter --target HOLDER --net --mount`` (no fork, so
   the command's pid is the one a ``ProcessGroup`` signals). Nothing is mounted in the root namespace, ever.
-- **Private installed files** (``lan.add_host("robot", private=HOST_PATHS)``): each listed directory is covered,
+- **Private installed files** (``lan.add_host("robot", private=INSTALL_PATHS)``): each listed directory is covered,
   inside that host's mount namespace only, by an overlayfs whose lower layer is the real directory and whose
   upper layer is a per-host directory under the run's state folder. An installer run in the host therefore sees
   the machine's files (Python, ROS, ``/usr/bin``) and writes only to its own copy: two hosts can install

@@ -1,9 +1,9 @@
 """Our zips installed into test hosts (tests/support/hosts.py), as an administrator would on real machines.
 
 Each host has its own network namespace (``eth0`` on the test LAN) and its own copy of the folders an installation
-writes (overlays over /opt, /usr/local, /etc, /root, /var/log, /run and /home inside the host's mount namespace),
-so this machine's real installation paths are never touched, whatever else runs at the same time; every daemon
-is stopped and every namespace removed at the end, even when a test fails.
+writes (overlays over /usr/local, /etc, /root, /var/log, /run and /home, and an empty /opt and dist-packages of
+its own, inside the host's mount namespace), so this machine's real installation paths are never touched, whatever
+else runs at the same time; every daemon is stopped and every namespace removed at the end, even when a test fails.
 
 - The master zip and the robot zip installed with the VPN flags into two hosts, ``service rcmpd start`` in each:
   the robot pairs over the platform's own VPN (issue 9).
