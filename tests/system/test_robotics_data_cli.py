@@ -17,7 +17,7 @@ def test_sqlite3_cli_shows_readable_tables(tmp_path):
 
 
 def _check_tables(data, path):
-    data.set_master("master", "10.8.0.1", [10100])
+    data.set_master("master", "198.51.100.1", [10100])
     data.provision_service_logic("demo", [NODE], [LAUNCHER])
     data.provision_platform_instance("robot1", "demo")
     tables = subprocess.run(["/usr/bin/sqlite3", "-readonly", path, ".tables"], capture_output=True, text=True,
@@ -27,7 +27,7 @@ def _check_tables(data, path):
     rows = subprocess.run(["/usr/bin/sqlite3", "-readonly", "-header", path,
                            "SELECT pi_name, slg_name, is_master, address, inbound_open_ports FROM platform_instance"],
                           capture_output=True, text=True, timeout=30, check=True).stdout.splitlines()
-    assert rows == ["pi_name|slg_name|is_master|address|inbound_open_ports", "master||1|10.8.0.1|10100",
+    assert rows == ["pi_name|slg_name|is_master|address|inbound_open_ports", "master||1|198.51.100.1|10100",
                     "robot1|demo|0||"]
     nodes = subprocess.run(["/usr/bin/sqlite3", "-readonly", path, "SELECT * FROM service_node WHERE slg_name='demo'"],
                            capture_output=True, text=True, timeout=30, check=True).stdout

@@ -217,10 +217,10 @@ def test_fiware_cannot_be_chosen_without_the_component_zips(tmp_path):
 
 def test_robot_name_and_server_vm(tmp_path):
     setup = Setup(tmp_path, "robot")
-    result = setup.run("\nno\nvm_one\n\n10.0.0.1\n\n", "--ros-port-base", "12000")
+    result = setup.run("\nno\nvm_one\n\n198.51.100.1\n\n", "--ros-port-base", "12000")
     assert result.returncode == 0, result.stderr
     assert setup.config_lines(result.stdout) == [
-        "[main]", "name=vm_one", "robot=no", "ip_master=10.0.0.1", "vpn_interface=nosuch0", "ros_port_base=12000"]
+        "[main]", "name=vm_one", "robot=no", "ip_master=198.51.100.1", "vpn_interface=nosuch0", "ros_port_base=12000"]
 
 
 def test_rerun_offers_the_current_configuration_as_defaults(tmp_path):
@@ -304,7 +304,7 @@ def test_end_of_input_stops_instead_of_looping(tmp_path):
     ("robot", ["--vpn-subnet", "198.51.100.0/24"], "unknown option '--vpn-subnet' for the rcm robot installer"),
     ("robot", ["--vpn-config", "/nonexistent/client.conf"], "'/nonexistent/client.conf' is not a readable file."),
     ("robot", ["--vpn-config", "/etc/hostname"], "is not an OpenVPN client file written by 'rcmp_n vpn client"),
-    ("robot", ["-n", "--ip-master", "10.0.0.1", "--name", "r", "--ros-port-base", "12000"],
+    ("robot", ["-n", "--ip-master", "198.51.100.1", "--name", "r", "--ros-port-base", "12000"],
      "ros_port_base (--ros-port-base) is only for a server virtual machine"),
 ])
 def test_bad_options_are_refused_and_change_nothing(tmp_path, role, args, message):
@@ -355,10 +355,10 @@ def test_uninstall_refuses_an_unknown_option_before_doing_anything(tmp_path):
 def test_server_vm_turned_robot_drops_its_ros_port_base(tmp_path):
     setup = Setup(tmp_path, "robot")
     setup.platform.mkdir()
-    (setup.platform / "init.cfg").write_text("[main]\nname=vm1\nrobot=no\nip_master=10.0.0.1\nros_port_base=12000\n")
+    (setup.platform / "init.cfg").write_text("[main]\nname=vm1\nrobot=no\nip_master=198.51.100.1\nros_port_base=12000\n")
     result = setup.run("", "-n", "--robot", "yes")
     assert result.returncode == 0, result.stderr
-    assert setup.config_lines(result.stdout) == ["[main]", "name=vm1", "robot=yes", "ip_master=10.0.0.1",
+    assert setup.config_lines(result.stdout) == ["[main]", "name=vm1", "robot=yes", "ip_master=198.51.100.1",
                                                  "vpn_interface=nosuch0"]
 
 

@@ -57,16 +57,16 @@ def test_template_is_all_comments_and_loads(tmp_path):
 
 
 def test_server_vm_and_every_ext_key(tmp_path):
-    write(tmp_path, "init.cfg", "[main]\nname=vm1\nrobot=no\nip_master=10.0.0.1\ninbound_open_ports=10200\n"
-                                "vpn_interface=lo\nvpn_address=10.0.0.7\nic_port=9000\nros_port_base=12000\n"
+    write(tmp_path, "init.cfg", "[main]\nname=vm1\nrobot=no\nip_master=198.51.100.1\ninbound_open_ports=10200\n"
+                                "vpn_interface=lo\nvpn_address=198.51.100.7\nic_port=9000\nros_port_base=12000\n"
                                 "heartbeat_interval=0.5\nheartbeat_misses=4\nlog_max_bytes=4096\n")
     config = load_config(tmp_path)
     assert config.role == "server" and config.name == "vm1"
     assert config.inbound_open_ports == [10200]
     assert (config.vpn_interface, config.vpn_address, config.ic_port, config.ros_port_base) == (
-        "lo", "10.0.0.7", 9000, 12000)
+        "lo", "198.51.100.7", 9000, 12000)
     assert (config.heartbeat_interval, config.heartbeat_misses, config.log_max_bytes) == (0.5, 4, 4096)
-    assert platform_address(config) == "10.0.0.7"
+    assert platform_address(config) == "198.51.100.7"
 
 
 def test_master_ext_keys_and_addresses(tmp_path):
@@ -82,8 +82,8 @@ def test_master_ext_keys_and_addresses(tmp_path):
 
 
 def test_robot_default_ip_master_is_own_vpn_address_with_last_octet_1(tmp_path):
-    write(tmp_path, "init.cfg", "[main]\nname=r1\nvpn_address=10.8.0.6\n")
-    assert load_config(tmp_path).ip_master == "10.8.0.1"
+    write(tmp_path, "init.cfg", "[main]\nname=r1\nvpn_address=198.51.100.6\n")
+    assert load_config(tmp_path).ip_master == "198.51.100.1"
     write(tmp_path, "init.cfg", "[main]\nname=r1\nvpn_interface=nosuch0\n")
     assert load_config(tmp_path).ip_master is None  # not known until the VPN is up
 
@@ -114,10 +114,10 @@ BAD = [
     (".init.cfg", "[main]\nic_port=70000\n", "key 'ic_port': not a port number"),
     (".init.cfg", "[main]\ninbound_open_ports=10100, x\n", "key 'inbound_open_ports': not a port number: 'x'"),
     (".init.cfg", "[main]\ninbound_open_ports=10100, 10100\n", "key 'inbound_open_ports': port 10100 is listed twice"),
-    (".init.cfg", "[main]\nvpn_address=10.0.0.300\n", "key 'vpn_address': not an IPv4 address"),
+    (".init.cfg", "[main]\nvpn_address=198.51.100.300\n", "key 'vpn_address': not an IPv4 address"),
     (".init.cfg", "[main]\nnmae=x\n", "unknown key 'nmae'"),
     (".init.cfg", "[main]\nrobot=yes\n", "key 'robot': not used by the master"),
-    (".init.cfg", "[main]\nip_master=10.0.0.1\n", "key 'ip_master': not used by the master"),
+    (".init.cfg", "[main]\nip_master=198.51.100.1\n", "key 'ip_master': not used by the master"),
     (".init.cfg", "inbound_open_ports=10100\n", "line 1: a key before the [main] section"),
     (".init.cfg", "[other]\nx=1\n", "no [main] section"),
     (".init.cfg", "[main]\n[extra]\n", "unknown section [extra]"),
@@ -137,8 +137,8 @@ BAD = [
     (".init.cfg", "[main]\nmax_service_spaces=100001\n", "key 'max_service_spaces': must be between 0 and 100000"),
     ("init.cfg", b"[main]\nname=\xff\n", "not a UTF-8 text file"),
     (".init.cfg", "[main]\nservers=vm1, vm-2\n", "key 'servers': not a valid instance name"),
-    (".init.cfg", "[main]\nservers=vm1, vm1@10.0.0.2\n", "key 'servers': server vm1 is listed twice"),
-    (".init.cfg", "[main]\nservers=vm1@10.0.0.300\n", "key 'servers': not an IPv4 address"),
+    (".init.cfg", "[main]\nservers=vm1, vm1@198.51.100.2\n", "key 'servers': server vm1 is listed twice"),
+    (".init.cfg", "[main]\nservers=vm1@198.51.100.300\n", "key 'servers': not an IPv4 address"),
     ("init.cfg", "[main]\nname=r1\nrobot=no\nservers=vm1\n", "key 'servers': not used by a server VM"),
     ("init.cfg", "[main]\nname=r1\nros_setup=opt/ros/noetic/setup.bash\n",
      "key 'ros_setup': neither none nor the absolute path of a setup script"),

@@ -31,7 +31,7 @@ class PlatformCommandTests(DataTestCase):
         robots = RecordingRobots(self.data)
         commands = PlatformCommands(self.data, robots=robots)
         yield commands.provisioning({"pi_name": "r1", "pi_service_logic": "empty"})
-        self.data.set_connected("r1", "10.8.0.6")
+        self.data.set_connected("r1", "198.51.100.6")
         reason = yield commands.r_provisioning({"pi_name": "r1"})
         self.assertIn("after disconnecting it", reason)
         self.assertEqual(robots.calls, [("r1", "its provisioning was removed", True)])
@@ -54,6 +54,6 @@ class PlatformCommandTests(DataTestCase):
         yield commands.provisioning({"pi_name": "r1", "pi_service_logic": "empty"})
         after = yield commands.read()
         self.assertEqual([r["pi_name"] for r in after], ["r1"])
-        self.data.set_connected("r1", "10.8.0.6")  # a write by the master runtime, not through the commands
+        self.data.set_connected("r1", "198.51.100.6")  # a write by the master runtime, not through the commands
         live = yield commands.read()
         self.assertTrue(live[0]["connected"])

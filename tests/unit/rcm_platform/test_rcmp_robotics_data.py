@@ -38,10 +38,10 @@ def test_new_file_has_schema_version_and_defaults(data, path):
 
 
 def test_master_row_is_stored_but_not_listed(data, path):
-    data.set_master("master", "10.8.0.1", [10100, 10101])
-    assert data.master() == {"pi_name": "master", "address": "10.8.0.1", "inbound_open_ports": [10100, 10101]}
+    data.set_master("master", "198.51.100.1", [10100, 10101])
+    assert data.master() == {"pi_name": "master", "address": "198.51.100.1", "inbound_open_ports": [10100, 10101]}
     assert data.platform_instances() == [] and data.platform_instance("master") is None
-    data.set_master("hub", "10.8.0.1", [])   # renamed master replaces the old row
+    data.set_master("hub", "198.51.100.1", [])   # renamed master replaces the old row
     assert data.master()["pi_name"] == "hub"
     db = sqlite3.connect(path)
     assert db.execute("SELECT pi_name FROM platform_instance WHERE is_master = 1").fetchall() == [("hub",)]
@@ -50,7 +50,7 @@ def test_master_row_is_stored_but_not_listed(data, path):
         data.provision_platform_instance("hub", "empty")
     data.provision_platform_instance("r1", "empty")
     with pytest.raises(Conflict):
-        data.set_master("r1", "10.8.0.1", [])
+        data.set_master("r1", "198.51.100.1", [])
 
 
 def test_provisioning_rules(data):
@@ -82,22 +82,22 @@ def test_live_state_and_forgetting_it_on_start(path):
     data.provision_platform_instance("r1", "fiware_base")
     data.provision_platform_instance("r2", "fiware_base")
     assert data.set_paired("r1", True) is False  # not connected: nothing to pair
-    data.set_connected("r1", "10.8.0.6")
+    data.set_connected("r1", "198.51.100.6")
     assert data.platform_instance("r1") == {"pi_name": "r1", "service_logic": "fiware_base", "connected": True,
-                                            "paired": False, "address": "10.8.0.6"}
+                                            "paired": False, "address": "198.51.100.6"}
     assert data.set_paired("r1", True) is True
-    data.set_service_space("r1", "http://10.8.0.1:11311/", 10100)
-    assert data.service_space("r1") == {"ss_name": "r1", "ros_master_uri": "http://10.8.0.1:11311/",
+    data.set_service_space("r1", "http://198.51.100.1:11311/", 10100)
+    assert data.service_space("r1") == {"ss_name": "r1", "ros_master_uri": "http://198.51.100.1:11311/",
                                         "inbound_port": 10100}
     assert data.platform_instances()[0] == {"pi_name": "r1", "service_logic": "fiware_base", "connected": True,
                                             "paired": True}
     with pytest.raises(NotFound):
-        data.set_connected("ghost", "10.8.0.9")
-    data.set_connected("r2", "10.8.0.7")
+        data.set_connected("ghost", "198.51.100.9")
+    data.set_connected("r2", "198.51.100.7")
     data.set_disconnected("r2")
     data.set_disconnected("r2")  # twice is fine
     assert data.platform_instance("r2")["connected"] is False
-    assert data.platform_instance("r2")["address"] == "10.8.0.7"  # last known address kept
+    assert data.platform_instance("r2")["address"] == "198.51.100.7"  # last known address kept
     data.close()
 
     again = RoboticsData(path)   # a new life of the master
@@ -105,7 +105,7 @@ def test_live_state_and_forgetting_it_on_start(path):
         ("r1", False, False), ("r2", False, False)]
     assert again.service_space("r1") is None
     # removing a robot removes its live state too
-    again.set_connected("r1", "10.8.0.6")
+    again.set_connected("r1", "198.51.100.6")
     again.set_service_space("r1", "http://x:1/", None)
     again.remove_platform_instance("r1")
     assert again.service_space("r1") is None

@@ -64,11 +64,11 @@ def test_node_executables_forget_a_file_that_is_no_longer_executable(tmp_path, m
 
 def test_child_env_points_at_the_space():
     env = rcmp_service_item.child_env({"PATH": "/root/.pyenv/shims:/usr/bin", "ROS_PACKAGE_PATH": "/ws/src",
-                                       "ROS_NAMESPACE": "/x"}, "http://10.8.0.1:11312/", "10.8.0.1", "/h/log/ros")
+                                       "ROS_NAMESPACE": "/x"}, "http://198.51.100.1:11312/", "198.51.100.1", "/h/log/ros")
     assert env["PATH"].split(":")[0] == "/usr/bin"
     assert env["PATH"].endswith("/root/.pyenv/shims")
-    assert env["ROS_MASTER_URI"] == "http://10.8.0.1:11312/"
-    assert env["ROS_IP"] == env["ROS_HOSTNAME"] == "10.8.0.1"
+    assert env["ROS_MASTER_URI"] == "http://198.51.100.1:11312/"
+    assert env["ROS_IP"] == env["ROS_HOSTNAME"] == "198.51.100.1"
     assert env["ROS_LOG_DIR"] == "/h/log/ros"
     assert env["ROS_PACKAGE_PATH"] == "/ws/src"
     assert "ROS_NAMESPACE" not in env
