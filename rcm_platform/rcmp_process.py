@@ -304,6 +304,10 @@ class _ChildProtocol(protocol.ProcessProtocol):
     def __init__(self, managed):
         self.managed = managed
 
+    def connectionMade(self):
+        # Twisted may reap a child that ended at once before the spawn returns: its pid is known from here on
+        self.managed.pid = self.transport.pid
+
     def outReceived(self, data):
         self.managed._output(data)
 
@@ -399,15 +403,18 @@ class ManagedProcess:
         table = self.table
         self._log = CappedLog(self.log_path, table.log_max_bytes)
         self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start{' as ' + self.user.name if self.user else ''}: {shlex.join(self.argv)}\n".encode())
+        self.started_at = table.reactor.seconds()
         try:
             self.pid = table.os.spawn(_ChildProtocol(self), self.argv, self.env, user=self.user)
         except (OSError, ValueError, TypeError) as exc:
+            self.started_at = None
             self.error = f"could not start {self.argv[0]}: {exc}"
             self._log.close()
             self._transition(FAILED, self.error)
             return
-        self.started_at = table.reactor.seconds()
         log.info("process %s started: pid %s, argv %s, log %s", self.key, self.pid, self.argv, self.log_path)
+        if self._reaped_yet:      # it ended before the spawn returned (a busy machine): nothing left to settle
+            return
         self._settle_call = table.reactor.callLater(table.settle_time, self._settled)
 
     def remember_descendants(self, max_age=0.0):

@@ -369,7 +369,8 @@ def test_a_topic_carrying_nan_is_drawn_without_it_and_says_so(browser, platform,
         page("nan-pose")
         assert canvas.is_displayed()
         assert "not drawn (NaN or Infinity)" in browser.driver.find_element(By.ID, "topic-status").text
-        assert stroke_box(browser)["count"] > 0                      # the finite poses are drawn
+        # the finite poses are drawn (at the page's next animation frame, after the samples are counted)
+        wait_until(lambda: stroke_box(browser)["count"] > 0, timeout=20, message="the finite poses drawn")
         assert browser.js("return document.getElementById('live').textContent") == "live"
         assert [e for e in browser.console_errors() if "Uncaught" in e.get("message", "")] == []
     finally:

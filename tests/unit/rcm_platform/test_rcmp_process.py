@@ -101,6 +101,21 @@ def test_spawn_is_starting_until_settle_time(tmp_path):
     assert mp.state == STARTING
 
 
+def test_a_child_reaped_before_the_spawn_returns_is_failed_with_its_pid_and_leaves_no_timer(tmp_path):
+    """Twisted reaps a child that ended at once from inside the spawn (a busy machine): the table knows its pid
+    (the transport's, from connectionMade), it is failed, and no settle timer is left behind."""
+    table, clock, fake = make_table(tmp_path)
+
+    def spawn_and_end_at_once(proto, argv, env, cwd=None, user=None):
+        proto.makeConnection(type("Transport", (), {"pid": 1234})())
+        proto.processExited(Failure(ierror.ProcessDone(0)))
+        return 1234
+    fake.spawn = spawn_and_end_at_once
+    mp = spawn(table)
+    assert mp.state == FAILED and mp.pid == 1234 and "before it settled" in mp.error
+    assert clock.getDelayedCalls() == []
+
+
 def test_starting_to_running_after_settle_time(tmp_path):
     table, clock, fake = make_table(tmp_path)
     mp = spawn(table)
