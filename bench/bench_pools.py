@@ -28,6 +28,7 @@ while the pools are held. The console's watchers' socket is not measured (the se
 Run: ``make bench-pools`` (FIROS is started with ``rosrun``, so the catkin overlay is needed).
 """
 
+import collections
 import http.client
 import json
 import os
@@ -57,6 +58,7 @@ CLIENT = "127.0.0.9"
 BROKER_SOURCE = "127.0.0.1"     # the stand-in broker's address: FIROS gives it the broker's share
 ROBOT = "end_end_test"          # the robot of FIROS's test whitelist; p1 is its commanded topic
 TRICKLE_EVERY = 8.0             # the attacker's pace: one request on each connection every 8 s
+RETRY_AFTER = 1.0               # FIROS's Retry-After on a 503
 SAMPLE_EVERY = 0.8              # the client's pace at FIROS: SAMPLES pairs span 40 s, past a connection's lifetime
 
 
@@ -228,8 +230,9 @@ def firos_notification(firos, token):
 class Trickle:
     """The attack on FIROS's pool: ``count`` keep-alive connections from ``sources`` (in turn), each sending one
     small ``GET /robots`` every TRICKLE_EVERY s. A connection FIROS closes at its lifetime is opened again at
-    once; one refused (503) or cut is tried again at its next tick. ``held``: the connections FIROS keeps open
-    now; ``counts()``: how many FIROS closed at their lifetime, refused, or cut so far."""
+    once (and, when that is refused because FIROS has not yet counted the old one out, once more after FIROS's
+    ``Retry-After``); one refused (503) or cut is tried again at its next tick. ``held``: the connections FIROS
+    keeps open now; ``counts()``: how many FIROS closed at their lifetime, refused, or cut so far."""
 
     def __init__(self, port, sources, count):
         self.port = port
@@ -244,7 +247,7 @@ class Trickle:
 
     def _connection(self, source):
         conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=15, source_address=(source, 0))
-        held = False
+        held = reopening = False
         try:
             while not self._stop.is_set():
                 try:
@@ -262,8 +265,11 @@ class Trickle:
                     if outcome:
                         self._counts[outcome] += 1
                 held = status == 200 and not closing
-                if not lifetime:
+                if status == 503 and reopening:
+                    self._stop.wait(RETRY_AFTER)    # its place may not be free yet: once more, as FIROS's 503 says
+                elif not lifetime:
                     self._stop.wait(TRICKLE_EVERY)         # the attacker's pace
+                reopening = lifetime
         finally:
             with self._lock:
                 self.held -= held
@@ -363,9 +369,9 @@ def measure_firos_pool(procs, tmp):
         pass                        # reported below: the target needs every one
     got = len(commands_received(procs, robot, tokens))
     trickling = "16 keep-alive connections from two addresses, a small request every 8 s each"
-    rows = [(FIROS_READ, f"{trickling} ({_span(seen)} held)", quiet[FIROS_READ], held[FIROS_READ]),
-            (FIROS_NOTE, f"{trickling} ({_span(seen)} held)", quiet[FIROS_NOTE], held[FIROS_NOTE]),
-            (FIROS_RESERVE, f"the same, 24 connections from three addresses ({_span(wide_seen)} held)",
+    rows = [(FIROS_READ, f"{trickling} (held: {_held_at(seen)})", quiet[FIROS_READ], held[FIROS_READ]),
+            (FIROS_NOTE, f"{trickling} (held: {_held_at(seen)})", quiet[FIROS_NOTE], held[FIROS_NOTE]),
+            (FIROS_RESERVE, f"the same, 24 connections from three addresses (held: {_held_at(wide_seen)})",
              quiet[FIROS_NOTE], reserve[FIROS_NOTE])]
     notes = (f"While two addresses trickled, FIROS closed {during['lifetime']} of their connections at their "
              f"lifetime (each opened again at once), refused {during['refused']} (503) and cut "
@@ -375,10 +381,13 @@ def measure_firos_pool(procs, tmp):
     return rows, notes, (got, len(tokens))
 
 
-def _span(values):
-    """"8" or "7 to 8": the range of the held connections seen at the samples."""
-    low, high = min(values), max(values)
-    return f"{low}" if low == high else f"{low} to {high}"
+def _held_at(values):
+    """How many connections were held at the samples: "8 at every sample", or "8 at 44 samples, 7 at 6"."""
+    counts = collections.Counter(values)
+    if len(counts) == 1:
+        return f"{values[0]} at every sample"
+    return ", ".join(f"{held} at {n} samples" if i == 0 else f"{held} at {n}"
+                     for i, (held, n) in enumerate(sorted(counts.items(), reverse=True)))
 
 
 def _ms(values, fraction):
