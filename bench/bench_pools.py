@@ -356,7 +356,7 @@ def measure_firos_pool(procs, tmp):
         try:
             firos_read(firos, None)
             fourth = "200"
-        except ConnectionError as exc:
+        except OSError as exc:       # the 503's status line, or why no answer came
             fourth = str(exc)
         reserve, served, wide_seen = measure_firos(firos, "reserve", {FIROS_NOTE: firos_notification}, wide)
     finally:
