@@ -10,7 +10,8 @@ robot-side items and say hello again when the master is lost). The wire format i
 ``docs/PROTOCOL.md`` documents every op.
 
 Live state the RDAPI shows (connected, paired, the service space row) is written through ``RoboticsData`` in a
-thread, one write after the other in the order the events happened.
+thread, in the order the events happened, the writes that waited meanwhile together in one transaction
+(``_BatchedWrites``).
 """
 
 import collections
@@ -102,24 +103,64 @@ def validate(op, body, side):
     return checked
 
 
-class _OrderedWrites:
-    """Runs blocking RoboticsData writes in a thread, one at a time, in the order they were asked for."""
+class _BatchedWrites:
+    """Runs blocking RoboticsData writes in a thread, in the order they were asked for, batched: the writes asked
+    for while a batch runs go together into the next one, one transaction (``RoboticsData.write_batch``, a
+    savepoint each: one that fails is rolled back alone and logged). A fleet pairing asks for thousands; one
+    transaction each, with the reactor holding the interpreter, fell behind by minutes."""
 
-    def __init__(self):
-        self._last = defer.succeed(None)
+    MAX_BATCH = 1000             # writes in one transaction at most (the rest go into the next)
+
+    def __init__(self, data):
+        self.data = data
+        self._pending = []           # (fn, args, Deferred) asked for since the running batch started
+        self._running = None         # the Deferred of the batch in its thread, or None
 
     def __call__(self, fn, *args):
+        """Queue ``fn(*args)`` (a write method of the data); the Deferred fires with its result, or fails."""
         done = defer.Deferred()
-
-        def run(_):
-            d = threads.deferToThread(fn, *args)
-            d.addCallbacks(done.callback, done.errback)
-            return d.addBoth(lambda _: None)
-
-        self._last = self._last.addCallback(run)
-        done.addErrback(lambda f: log.error("robotics data %s%r failed: %s", fn.__name__, args,
+        self._pending.append((fn, args, done))
+        if self._running is None:
+            self._next()
+        done.addErrback(lambda f: log.error("robotics data %s%r failed: %s", getattr(fn, "__name__", fn), args,
                                             f.getErrorMessage()) or None)
         return done
+
+    def flush(self):
+        """A Deferred that fires once every write asked for so far is done."""
+        if self._running is None and not self._pending:
+            return defer.succeed(None)
+        done = defer.Deferred()
+        self._pending.append((None, (), done))
+        if self._running is None:
+            self._next()
+        return done
+
+    def _next(self):
+        batch, self._pending = self._pending[:self.MAX_BATCH], self._pending[self.MAX_BATCH:]
+        calls = [(fn, args) for fn, args, _ in batch if fn is not None]
+        self._running = threads.deferToThread(self.data.write_batch, calls) if calls else defer.succeed([])
+        self._running.addCallbacks(self._finished, self._failed, callbackArgs=(batch,), errbackArgs=(batch,))
+
+    def _finished(self, results, batch):
+        outcomes = iter(results)
+        for fn, _, done in batch:
+            if fn is None:
+                done.callback(None)
+                continue
+            ok, value = next(outcomes)
+            done.callback(value) if ok else done.errback(value)
+        self._done()
+
+    def _failed(self, reason, batch):
+        for fn, _, done in batch:     # the transaction failed as a whole: nothing of the batch was kept
+            done.callback(None) if fn is None else done.errback(reason)
+        self._done()
+
+    def _done(self):
+        self._running = None
+        if self._pending:
+            self._next()
 
 
 def _address_function(config, address):
@@ -226,7 +267,7 @@ class MasterAgent(service.Service):
         self.sessions = {}           # robot name -> AgentSession
         self.servers = {}            # server VM name -> its session (robot false): it hosts service spaces
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
-        self._write = _OrderedWrites()
+        self._write = _BatchedWrites(data)
         self.max_starting_spaces = config.max_starting_spaces or default_max_starting_spaces()
         self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
         self._starting = {}          # robot name -> session whose space is being built now
@@ -333,7 +374,7 @@ class MasterAgent(service.Service):
         yield defer.gatherResults([
             self._locked(name, self._end_server, self.servers.get(name), "the master is stopping", tell=True)
             for name in list(self.servers)], consumeErrors=True)
-        yield self._write(lambda: None)
+        yield self._write.flush()
 
     # -- public -----------------------------------------------------------------------------------------
     def disconnect(self, pi_name, reason):
