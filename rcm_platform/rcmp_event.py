@@ -26,7 +26,7 @@ from twisted.python import failure
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
-from rcm_platform.rcmp_config import master_address_from
+from rcm_platform.rcmp_config import SERVER_STARTING_SPACES, default_max_starting_spaces, master_address_from
 from rcm_platform.rcmp_log_guard import shown
 from rcm_platform.rcmp_service_command import describe, describe_waiting
 
@@ -53,7 +53,7 @@ _NONE = type(None)
 # op -> (who serves it, {field: accepted types}); fields in OPTIONAL may be absent (then None)
 OPS = {
     "hello": ("master", {"name": str, "address": str, "robot": bool, "version": int,
-                         "max_service_spaces": (int, _NONE)}),
+                         "max_service_spaces": (int, _NONE), "max_starting_spaces": (int, _NONE)}),
     "bye": ("master", {"reason": str}),
     "item_exited": ("master", {"ss_name": str, "report": dict}),
     "heartbeat": ("both", {}),
@@ -63,13 +63,9 @@ OPS = {
     "item_tails": ("robot", {"ss_name": str, "lines": int}),
     "disconnect": ("robot", {"reason": str}),
 }
-OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces"}
+OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces", "max_starting_spaces"}
 MAX_SERVICE_SPACES = 100         # a server VM's max_service_spaces when its hello does not say
 
-
-def default_max_starting_spaces():
-    """Service spaces built at once unless ``max_starting_spaces`` says otherwise: two per core, at least 2."""
-    return max(2, 2 * (os.cpu_count() or 1))
 
 
 def _type_names(types):
@@ -248,8 +244,11 @@ class MasterAgent(service.Service):
     certificate cannot say hello as a server VM, nor a server's as a robot), and a server VM's name against the
     ``servers`` allow-list when it is set (``wrong_role``); then, under the robot's lock, its provisioning
     (``not_provisioned``) and its live session (``in_use`` when a session heard from within the heartbeat window
-    comes from another source address). Space creation is queued after the answer: at most
-    ``max_starting_spaces`` are built at once, the others wait in arrival order.
+    comes from another source address). Space creation is queued after the answer: each machine builds its own
+    count at once (``max_starting_spaces`` for the master's; a server VM's from its hello, ``SERVER_STARTING_SPACES``
+    when it does not say), so the platform builds at most their sum at once (``build_limit``) and the other
+    spaces wait in arrival order; a space placed on a server whose count is taken waits there for its turn
+    (``rcmp_ms.Server.building``).
     """
 
     name = "ic-master"
@@ -419,8 +418,7 @@ class MasterAgent(service.Service):
     def describe(self, ss_name):
         """The service_space/read payload: the space manager's space, or, for a space waiting to be built, why."""
         if ss_name in self._waiting:
-            return describe_waiting(list(self._waiting).index(ss_name) + 1, self.max_starting_spaces,
-                                    self.public_ip)
+            return describe_waiting(list(self._waiting).index(ss_name) + 1, self.build_limit(), self.public_ip)
         return describe(self.spaces, ss_name)
 
     # -- protocol handler -------------------------------------------------------------------------------
@@ -531,10 +529,12 @@ class MasterAgent(service.Service):
                              f"{peer.host}", code="wrong_address")
         self._check_role(peer, name, "robot" if body["robot"] else "server", certificate)
         if not body["robot"]:
-            session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"])
+            session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"],
+                                         body["max_starting_spaces"])
             if session is None:
                 raise ic.Refused("the connection closed during hello", code="gone")
-            self.spaces.add_server(name, session, session.capacity, peer.host)
+            self.spaces.add_server(name, session, session.capacity, peer.host, builds=session.builds)
+            self.reactor.callLater(0, self._next_spaces)      # the platform builds more at once now
             return {"accepted": True, "master": self.config.name,
                     "heartbeat_interval": self.config.heartbeat_interval,
                     "heartbeat_misses": self.config.heartbeat_misses}
@@ -645,11 +645,14 @@ class MasterAgent(service.Service):
         return pi
 
     @defer.inlineCallbacks
-    def _admit_server(self, peer, name, capacity):
+    def _admit_server(self, peer, name, capacity, builds):
         """Under ``name``'s lock: a server VM joins by itself (CONTRACTS §8). Refused when ``name`` is a provisioned
         robot's or a live server's from another address; the new session."""
         if capacity is not None and not 0 <= capacity <= 100000:
             raise ic.Refused(f"hello: max_service_spaces must be between 0 and 100000, not {capacity}",
+                             code="bad_request")
+        if builds is not None and not 1 <= builds <= 1000:
+            raise ic.Refused(f"hello: max_starting_spaces must be between 1 and 1000, not {builds}",
                              code="bad_request")
         pi = yield threads.deferToThread(self.data.platform_instance, name)
         if pi is not None or name in self.sessions:
@@ -661,6 +664,7 @@ class MasterAgent(service.Service):
             return None
         session = AgentSession(self, peer, name, peer.host, False)
         session.capacity = MAX_SERVICE_SPACES if capacity is None else capacity
+        session.builds = SERVER_STARTING_SPACES if builds is None else builds    # an older server does not say
         peer.admit()
         peer.info["session"] = session
         self.servers[name] = session
@@ -689,12 +693,17 @@ class MasterAgent(service.Service):
 
     # -- service space admission ------------------------------------------------------------------------
     def _queue_space(self, session, pi):
-        """Build the robot's space when its turn comes: at most max_starting_spaces at once, in arrival order."""
+        """Build the robot's space when its turn comes: at most ``build_limit()`` at once, in arrival order."""
         self._waiting[session.name] = (session, pi)
         self._next_spaces()
 
+    def build_limit(self):
+        """Spaces the platform builds at once: the master's own count and each connected server VM's."""
+        return self.max_starting_spaces + sum(server.builds for server in self.servers.values())
+
     def _next_spaces(self):
-        while self._waiting and len(self._starting) < self.max_starting_spaces:
+        limit = self.build_limit()
+        while self._waiting and len(self._starting) < limit:
             name, (session, pi) = self._waiting.popitem(last=False)
             if session.ended:
                 continue
@@ -872,6 +881,7 @@ class RobotAgent(service.Service):
                      "version": VERSION}
             if self.config.role == "server":
                 hello["max_service_spaces"] = self.config.max_service_spaces
+                hello["max_starting_spaces"] = self.config.max_starting_spaces or default_max_starting_spaces()
             answer = yield peer.request("hello", hello, timeout=HELLO_TIMEOUT)
         except ic.RemoteError as exc:
             self._problem("master %s refused hello: %s", master, shown(exc.reason))

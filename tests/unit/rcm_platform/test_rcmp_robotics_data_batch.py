@@ -9,12 +9,7 @@ import pytest
 
 from rcm_platform.rcmp_command import NotFound
 from rcm_platform.rcmp_robotics_data import RoboticsData
-from tests.unit.rcm_platform.test_rcmp_robotics_data import LAUNCHER, NODE
-
-
-@pytest.fixture
-def path(tmp_path):
-    return str(tmp_path / "robotics_data.db")
+from tests.unit.rcm_platform.test_rcmp_robotics_data import LAUNCHER, NODE, path  # noqa: F401 (a fixture)
 
 
 @pytest.fixture
