@@ -47,6 +47,7 @@ REFUSAL_QUIET = 3600.0           # seconds during which the same agent refused f
 MAX_REFUSALS_REMEMBERED = 1024   # (code, name, address) kept for that
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
+BEATS_ITSELF = 2                 # a peer whose heartbeat came within this many intervals gets none from the master
 
 _NONE = type(None)
 
@@ -188,9 +189,19 @@ class AgentSession:
         self.paired_once = False     # its first pairing in this session was timed
         self.watchdog = rcmp_wd.Watchdog(
             agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
-            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
-            last_heard=lambda: peer.last_heard, on_gone=self._gone,
+            send_beat=self._beat, last_heard=lambda: peer.last_heard, on_gone=self._gone,
             name=f"{self.what} {name}", on_miss=lambda: self._count("heartbeat_misses"))
+
+    def _beat(self):
+        """The master's own heartbeat, sent only to a peer that does not beat itself: one whose last ``heartbeat``
+        request (``peer.info["beat_at"]``) is older than two intervals, or that never sent one (an agent that does
+        not beat). Every agent beats the master, and its beats' answers are what it hears from the master, so
+        beating it too only doubled the frames (and the master's work) per peer."""
+        beat_at = self.peer.info.get("beat_at")
+        if beat_at is not None and self.agent.reactor.seconds() - beat_at < BEATS_ITSELF * self.watchdog.interval:
+            return None
+        self._count("heartbeats_sent")
+        return self.peer.request("heartbeat", {}, timeout=self.watchdog.limit)
 
     def _count(self, what):
         self.agent.counters[f"{what}_{self.what}"] += 1
@@ -426,6 +437,7 @@ class MasterAgent(service.Service):
         body = validate(op, body, "master")
         session = peer.info.get("session")
         if op == "heartbeat":
+            peer.info["beat_at"] = self.reactor.seconds()       # it beats itself: the master need not (_beat)
             return {}
         if op == "hello":
             return self._hello(peer, body)

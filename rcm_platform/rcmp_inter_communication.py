@@ -21,7 +21,9 @@ Rules (``docs/PROTOCOL.md`` is the reference):
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
-- when the connection goes, every pending request fails with ``PeerGone``.
+- when the connection goes, every pending request fails with ``PeerGone``;
+- both ends set ``TCP_NODELAY``: frames are small and answered at once (a heartbeat held back by Nagle's algorithm
+  waits for the peer's delayed acknowledgement, tens of milliseconds).
 
 This module knows nothing of robots: what the ops mean is ``rcmp_event``'s business. A connection's owner gives
 it a *handler* with ``request_received(peer, op, body) -> value | Deferred`` (raise ``Refused`` for an ``err``
@@ -198,6 +200,10 @@ class Peer(Int32StringReceiver):
 
     # -- connection -------------------------------------------------------------------------------------
     def connectionMade(self):
+        # frames are small and answered at once: Nagle's algorithm would hold each behind the peer's delayed ack
+        no_delay = getattr(self.transport, "setTcpNoDelay", None)
+        if no_delay is not None:
+            no_delay(True)
         self.connected_at = self.last_heard = self.reactor.seconds()
         peer = self.transport.getPeer()
         self.host = getattr(peer, "host", "?")
