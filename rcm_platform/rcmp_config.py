@@ -181,7 +181,8 @@ class Config:
     allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
     run_as: Optional[str] = None       # (ext) the user service items run as (default: the workspace's owner)
     max_starting_spaces: Optional[int] = None    # (ext) service spaces this machine builds at once (None: 2 per core)
-    ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit)
+    ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit,
+                                                 # which the agent raises to the hard limit at start)
     ic_max_per_address: Optional[int] = None     # (ext) agent-port connections from one address (None: 8)
     max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
     servers: Optional[dict] = None     # (ext) master: server VM names allowed (name -> its only address, or None);

@@ -364,7 +364,8 @@ class MasterAgent(service.Service):
         self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self,
                                    max_connections=self.config.ic_max_connections,
                                    max_per_address=self.config.ic_max_per_address)
-        log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
+        log.info("agent-to-agent server listening on %s:%d (at most %d connections)", self.address,
+                 self.config.ic_port, self.listening.factory.caps.max_connections)
 
     @defer.inlineCallbacks
     def stopService(self):

@@ -415,12 +415,17 @@ class ConnectionCaps:
             self.per_address.pop(host, None)
 
 
+UNLIMITED_FILES = 65536          # the open-file limit counted for a process whose limit is infinite
+
+
 def default_max_connections():
-    """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), 64 to 4096."""
+    """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), at least 64.
+    The agent raises its limit at start (``rcmp_resources.raise_open_files``), so the cap follows what the
+    machine allows: 5,000 under a hard limit of 20,000, 256 where only 1,024 descriptors may be open."""
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft == resource.RLIM_INFINITY:
-        return 4096
-    return max(64, min(4096, soft // 4))
+        soft = UNLIMITED_FILES
+    return max(64, soft // 4)
 
 
 class ListeningFactory(PeerFactory):
