@@ -27,7 +27,7 @@ from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
 from rcm_platform.rcmp_config import SERVER_STARTING_SPACES, default_max_starting_spaces, master_address_from
-from rcm_platform.rcmp_log_guard import shown
+from rcm_platform.rcmp_log_guard import Budget, shown
 from rcm_platform.rcmp_service_command import describe, describe_waiting
 
 log = logging.getLogger("rcmp.event")
@@ -47,6 +47,7 @@ REFUSAL_QUIET = 3600.0           # seconds during which the same agent refused f
 MAX_REFUSALS_REMEMBERED = 1024   # (code, name, address) kept for that
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
+HELLO_LINES = 20                 # accepted hellos logged per 10 s at most (then their count; a herd's are many)
 BEATS_ITSELF = 2                 # a peer whose heartbeat came within this many intervals gets none from the master
 
 _NONE = type(None)
@@ -292,6 +293,9 @@ class MasterAgent(service.Service):
         self._removals = 0
         self._refreshing = None      # callers waiting for the read in flight, or None
         self._refusals_logged = collections.OrderedDict()   # (code, name, address) -> when it was last logged
+        # a fleet saying hello together would write a line per robot: the first few, then their count
+        self._hello_lines = Budget(log, "lines about accepted hellos", clock=reactor.seconds, burst=HELLO_LINES,
+                                   count_level=logging.INFO)
         self.listening = None
         self.address = None
         self._address_call = None
@@ -503,8 +507,8 @@ class MasterAgent(service.Service):
         finally:
             peer.info["hello_pending"] = False
         took = self.reactor.seconds() - started
-        log.info("%s %s connected from %s (hello answered in %.3f s)", "robot" if body["robot"] else "server",
-                 body["name"], peer.host, took)
+        self._hello_lines.info("%s %s connected from %s (hello answered in %.3f s)",
+                               "robot" if body["robot"] else "server", body["name"], peer.host, took)
         self._timed("hello", took)
         return answer
 
