@@ -24,7 +24,7 @@ from twisted.internet import task
 log = logging.getLogger("rcmp.resources")
 
 NOFILE_CEILING = 65536           # the most the soft open-file limit is raised to
-FREEZE_EVERY = 30.0              # seconds between two freezes of what the agent holds
+FREEZE_EVERY = 10.0              # seconds between two freezes of what the agent holds
 THAW_EVERY = 600.0               # seconds between two full collections of everything
 
 
