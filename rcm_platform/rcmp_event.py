@@ -194,12 +194,16 @@ class AgentSession:
             name=f"{self.what} {name}", on_miss=lambda: self._count("heartbeat_misses"))
 
     def _beat(self):
-        """The master's own heartbeat, sent only to a peer that does not beat itself: one whose last ``heartbeat``
-        request (``peer.info["beat_at"]``) is older than two intervals, or that never sent one (an agent that does
-        not beat). Every agent beats the master, and its beats' answers are what it hears from the master, so
-        beating it too only doubled the frames (and the master's work) per peer."""
+        """The master's own heartbeat, sent only when the peer needs it: every agent beats the master and hears
+        the answers, so beating it too only doubled the frames (and the master's work) per peer. Sent to a peer
+        that does not beat itself (no ``heartbeat`` request from it, ``peer.info["beat_at"]``, within the last
+        ``BEATS_ITSELF`` intervals: an agent that never beats, or one that stopped) and to one not heard from for
+        ``rcmp_wd.MISSED_AFTER`` intervals (its beats are late: ours makes it answer before the limit)."""
+        now = self.agent.reactor.seconds()
+        interval = self.watchdog.interval
         beat_at = self.peer.info.get("beat_at")
-        if beat_at is not None and self.agent.reactor.seconds() - beat_at < BEATS_ITSELF * self.watchdog.interval:
+        beats_itself = beat_at is not None and now - beat_at < BEATS_ITSELF * interval
+        if beats_itself and now - (self.peer.last_heard or 0) < rcmp_wd.MISSED_AFTER * interval:
             return None
         self._count("heartbeats_sent")
         return self.peer.request("heartbeat", {}, timeout=self.watchdog.limit)
