@@ -16,7 +16,6 @@ thread, in the order the events happened, the writes that waited meanwhile toget
 
 import collections
 import logging
-import os
 import random
 
 from twisted.application import service
@@ -67,7 +66,6 @@ OPS = {
 }
 OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces", "max_starting_spaces"}
 MAX_SERVICE_SPACES = 100         # a server VM's max_service_spaces when its hello does not say
-
 
 
 def _type_names(types):

@@ -32,5 +32,5 @@ class HelloLinesTests(MasterCase):
         self.master._hello_lines.flush()
         counted = [(line, level) for line, level in zip(self.log.lines, self.log.levels)
                    if "more lines about accepted hellos were left out" in line]
-        self.assertEqual(counted, [(f"5 more lines about accepted hellos were left out of the log in the last 10 s",
+        self.assertEqual(counted, [("5 more lines about accepted hellos were left out of the log in the last 10 s",
                                     logging.INFO)])
