@@ -144,6 +144,14 @@ def read_rows(master, timeout=30):
     return elapsed, len(raw), {row["pi_name"]: row for row in json.loads(raw)["reason"]}
 
 
+def master_port_cap():
+    """The master's default agent-port cap: a quarter of the open-file limit it raises itself to at start (the hard
+    limit it inherits from us, at most ``NOFILE_CEILING``)."""
+    from rcm_platform.rcmp_resources import NOFILE_CEILING
+    hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+    return (NOFILE_CEILING if hard == resource.RLIM_INFINITY else min(hard, NOFILE_CEILING)) // 4
+
+
 def hello_buckets(master):
     """The master's own hello answer times (``rcm_hello_duration_seconds`` of ``/metrics``: the log writes only
     the first hellos of each 10 s) as ``[(upper bound, cumulative count)]``."""
@@ -318,7 +326,7 @@ class Run:
         self.left = set()            # robots the benchmark made leave (their session ends are expected)
         keys = {"max_service_spaces": 0, "heartbeat_interval": args.heartbeat, "heartbeat_misses": 3,
                 "log_max_bytes": 200 * 1024 * 1024}
-        if n + self.s + 64 > 4096:   # the agent port's default cap is a quarter of the fd limit, at most 4,096
+        if n + self.s + 64 > master_port_cap():
             keys["ic_max_connections"] = n + self.s + 256
             self.figures["ic_max_connections"] = keys["ic_max_connections"]
         keys.update(args.master_key)
@@ -721,7 +729,7 @@ def report(results, args):
             notes.append(f"not finished: {r['error']}")
         if r.get("ic_max_connections"):
             notes.append(f"`ic_max_connections {r['ic_max_connections']}` was set: the agent port's default cap "
-                         f"(a quarter of the open-file limit, at most 4,096) is below N")
+                         f"(a quarter of the open-file limit the master raises itself to) is below N")
         losses = (r.get("sim_losses") or [])[:5]
         if losses:
             notes.append("sessions lost (simulator): " + "; ".join(f"{n}: {why}" for _, n, why in losses))
