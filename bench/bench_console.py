@@ -99,7 +99,10 @@ class StreamClock:
                     if robots is None:
                         continue
                     now = time.time()
-                    names = {r["pi_name"] for r in robots}
+                    if isinstance(robots, list):        # a snapshot: every robot
+                        names = {r["pi_name"] for r in robots}
+                    else:                               # a patch: the rows changed and the names gone
+                        names = (self.present | set(robots.get("changed", {}))) - set(robots.get("gone", []))
                     for name in names - self.present:
                         self.seen.setdefault(name, now)
                     for name in self.present - names:

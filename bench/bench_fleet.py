@@ -255,23 +255,28 @@ class ConsoleClock:
                 time.sleep(0.2)   # reconnect pace, as the page's own retry
 
     def _take(self, payload):
+        """A snapshot (its ``robots`` a whole list) or a patch (its ``robots`` the changed rows and the names
+        gone, docs/CONSOLE.md)."""
         robots = payload.get("robots")
         now = time.time()
         with self.lock:
             self.pushes += 1
             if robots is None:
                 return
+            whole = isinstance(robots, list)
+            rows = robots if whole else list(robots.get("changed", {}).values())
             seen = set()
-            for row in robots:
+            for row in rows:
                 name = row["pi_name"]
                 seen.add(name)
                 state = (row.get("connected"), row.get("paired"), row.get("server"))
                 if self.rows.get(name) != state:
                     self.rows[name] = state
                     self.changes.append((now, name, state))
-            for name in [n for n in self.rows if n not in seen]:
-                del self.rows[name]
-                self.changes.append((now, name, None))
+            gone = [n for n in self.rows if n not in seen] if whole else robots.get("gone", [])
+            for name in gone:
+                if self.rows.pop(name, None) is not None:
+                    self.changes.append((now, name, None))
 
     def first(self, name, predicate, after):
         """The time of the first change of ``name`` at or after ``after`` whose state satisfies ``predicate``."""

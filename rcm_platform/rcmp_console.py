@@ -10,6 +10,10 @@ Owns the console's resources and its live data, nothing else:
   appears, changes or goes). It coalesces them (``COALESCE`` seconds), rebuilds a snapshot with the code the
   RDAPI reads use (``PlatformCommands.read``, ``RoboticsData.service_logic``, ``ServiceSpaceManager.describe``)
   and pushes each stream only what differs from the last snapshot. A new stream gets the whole snapshot first.
+  A rebuild costs what changed, not the fleet: the robots' addresses come in one query (``addresses``), only the
+  spaces the observers named are described again (all of them when a server joins or goes, or a process that is
+  no space's changes), and a patch carries the robot and server rows that changed (``rows_patch``), never the
+  whole lists.
   Streams (event and topic streams alike) are a pool with a share per source address: at most ``MAX_CLIENTS``
   in all and ``MAX_PER_ADDRESS`` from one address (``rcmp_inter_communication.ConnectionCaps``; 503 beyond), so
   one address holding its share leaves the others served. A stream must be read: one whose connection stays
@@ -29,7 +33,7 @@ Owns the console's resources and its live data, nothing else:
   bounded text. The node is stopped ``WATCH_GRACE`` seconds after the last page stops watching, or when the
   space goes.
 
-About 1,000 lines, more than the 900 or so of the other modules: the agent's side of the topic watchers and the
+About 1,100 lines, more than the 900 or so of the other modules: the agent's side of the topic watchers and the
 watcher node's side (``watch_main``, the only place rospy is imported) are the two ends of one private line
 protocol, kept in one module so that they change together.
 """
@@ -86,6 +90,32 @@ def sse(event, payload):
     """One Server-Sent Event: ``event:`` line and the payload as one strict JSON ``data:`` line."""
     data = strict_dumps(payload, sort_keys=True, separators=(",", ":"))
     return f"event: {event}\ndata: {data}\n\n".encode("utf-8")
+
+
+def rows_patch(old, new):
+    """What a patch says of a list of rows named by ``pi_name`` (robots, servers) going from ``old`` to ``new``,
+    or None when nothing changed: ``{"changed": {name: row}, "gone": [name]}``, the rows new or different and the
+    names no longer there. A reader drops the gone rows, replaces the changed ones where they are and appends the
+    new ones in the order of ``changed`` (by name); when that would not give ``new``'s order, the patch also
+    carries ``"order"``: every name in order."""
+    if new is old:
+        return None
+    before = {row["pi_name"]: row for row in old}
+    changed = {}
+    for row in new:
+        if before.get(row["pi_name"]) != row:
+            changed[row["pi_name"]] = row
+    names = [row["pi_name"] for row in new]
+    gone = sorted(set(before).difference(names))
+    patch = {"changed": changed, "gone": gone}
+    dropped = set(gone)
+    expected = [row["pi_name"] for row in old if row["pi_name"] not in dropped]
+    expected += sorted(name for name in changed if name not in before)
+    if expected != names:
+        patch["order"] = names
+    elif not changed and not gone:
+        return None
+    return patch
 
 
 # -- one stream -------------------------------------------------------------------------------------------------
@@ -231,6 +261,9 @@ class Console:
         self._again = False
         self._data_seen = None
         self._data_part = None      # (logics, robot addresses) of generation _data_seen
+        self._dirty = None          # names of the spaces changed since the last rebuild; None: every space
+        self._robots_from = None    # (robot rows, addresses, the snapshot's robots made of them)
+        self._snapshot_event = None  # the current snapshot as one "snapshot" event (sent to every new stream)
         self._heartbeat = None
         self._detail_loop = None
         self._listener = None
@@ -291,6 +324,12 @@ class Console:
         self.reactor.callFromThread(self.changed)
 
     def _process_changed(self, managed, old, new):
+        key = str(getattr(managed, "key", ""))
+        prefix = f"{getattr(self.spaces, 'key_prefix', 'ss')}/"
+        if key.startswith(prefix):
+            self._space_dirty(key[len(prefix):].split("/", 1)[0])    # a process of that space's
+        elif not key.startswith("console/watch/"):
+            self._space_dirty(None)                                   # not known to be no space's: all
         self.changed()
         if managed.key.startswith("console/watch/") and new in DONE_STATES:
             watch = self.watches.get(managed.key[len("console/watch/"):])
@@ -299,10 +338,18 @@ class Console:
 
     def _space_changed(self, ss_name):
         """ServiceSpaceManager observer: ``ss_name`` changed (None: a server joined or went)."""
+        self._space_dirty(ss_name)
         self.changed()
         watch = self.watches.get(ss_name) if ss_name else None
         if watch is not None and self.spaces.spaces.get(ss_name) is None:
             watch.space_gone()
+
+    def _space_dirty(self, ss_name):
+        """The next rebuild describes ``ss_name`` again (None: every space, e.g. a server joined or went)."""
+        if ss_name is None:
+            self._dirty = None
+        elif self._dirty is not None:
+            self._dirty.add(ss_name)
 
     def changed(self):
         """Something may have changed: rebuild and push within ``coalesce`` seconds (once for many changes)."""
@@ -310,6 +357,8 @@ class Console:
             return
         if not self.streams and not self._waiting:
             self.snapshot = None    # nobody looks: no work; the next stream gets a fresh snapshot
+            self._snapshot_event = None
+            self._dirty = None
             return
         if self._building:
             self._again = True
@@ -318,48 +367,70 @@ class Console:
 
     # -- snapshots --------------------------------------------------------------------------------------
     def _read_data(self):
-        """On a thread: every service logic and the robots' addresses, from RoboticsData."""
+        """On a thread: every service logic and the robots' addresses (one query), from RoboticsData."""
         logics = {}
         for name in self.data.service_logic_names():
             logic = self.data.service_logic(name)
             if logic is not None:
                 logics[name] = logic
-        addresses = {}
-        for row in self.data.platform_instances():
-            one = self.data.platform_instance(row["pi_name"])
-            if one is not None:
-                addresses[row["pi_name"]] = one.get("address")
-        return logics, addresses
+        return logics, self.data.addresses()
 
     @defer.inlineCallbacks
     def _rebuild(self):
         self._call = None
         self._building = True
+        dirty, self._dirty = self._dirty, set()
         try:
             generation = self.data.generation
             if generation != self._data_seen:
                 self._data_part = yield threads.deferToThread(self._read_data)
                 self._data_seen = generation
             logics, addresses = self._data_part
-            # the robots' rows (cached on the generation) carry live state (server), and the servers are live
-            robots = yield self.platform.read()
-            robots = [dict(row, address=addresses.get(row["pi_name"])) for row in robots]
+            # the robots' rows (the same object while the data and the placement stay) carry live state
+            # (server), and the servers are live
+            robots = self._robots(addresses, (yield self.platform.read()))
             servers = yield self._servers()
-            spaces = {}
-            # the running spaces and those waiting for a server with room (CONTRACTS §8)
-            names = set(getattr(self.spaces, "spaces", {}) or {}) | set(getattr(self.spaces, "unplaced", {}) or {})
-            for name in sorted(names):
-                described = self.describe(name)
-                if described is not None:
-                    spaces[name] = described
-            self._publish({"robots": robots, "servers": servers, "logics": logics, "spaces": spaces})
+            spaces, described = self._spaces(dirty)
+            self._publish({"robots": robots, "servers": servers, "logics": logics, "spaces": spaces}, described)
         except Exception:
+            self._dirty = None      # what this rebuild was told is lost with it: the next describes every space
             log.exception("console: cannot build a snapshot")
         finally:
             self._building = False
             if self._again:
                 self._again = False
                 self.changed()
+
+    def _robots(self, addresses, rows):
+        """The snapshot's robots: the RDAPI's rows, each with its address; the same list while neither changed."""
+        last = self._robots_from
+        if last is not None and last[0] is rows and last[1] is addresses:
+            return last[2]
+        robots = [dict(row, address=addresses.get(row["pi_name"])) for row in rows]
+        self._robots_from = (rows, addresses, robots)
+        return robots
+
+    def _spaces(self, dirty):
+        """The snapshot's spaces (the running ones and those waiting for a server with room, CONTRACTS §8) and the
+        names described again: those in ``dirty``, those the last snapshot did not have and those waiting for
+        room (their sentence counts every server's spaces); all of them when ``dirty`` is None or there is no
+        last snapshot. The others keep the description of the last snapshot."""
+        running = getattr(self.spaces, "spaces", {}) or {}
+        waiting = getattr(self.spaces, "unplaced", {}) or {}
+        old = self.snapshot["spaces"] if self.snapshot is not None and dirty is not None else None
+        if old is not None and not dirty and not waiting and len(old) == len(running):
+            return old, set()       # nothing said it changed (a data write, say): the same spaces
+        spaces = {}
+        described = set()
+        for name in list(running) + [n for n in waiting if n not in running]:
+            if old is not None and name in old and name not in dirty and name not in waiting:
+                spaces[name] = old[name]
+                continue
+            described.add(name)
+            payload = self.describe(name)
+            if payload is not None:
+                spaces[name] = payload
+        return spaces, (None if old is None else described)
 
     def _servers(self):
         """The servers' rows (CONTRACTS §8) where the RDAPI has them; [] where it does not."""
@@ -370,26 +441,37 @@ class Console:
         d.addErrback(lambda failure: [])
         return d
 
-    def _publish(self, new):
+    def _publish(self, new, described=None):
+        """Make ``new`` the snapshot and push what differs from the last one (``described``: the only spaces that
+        may differ besides those gone; None: any may)."""
         old = self.snapshot
         self.seq += 1
         new["seq"] = self.seq
         new["at"] = time.time()
         self.snapshot = new
+        self._snapshot_event = None
+        self._push(old, new, described)
         waiting, self._waiting = self._waiting, []
         for d in waiting:
             d.callback(new)
+
+    def _push(self, old, new, described):
+        """Send every stream the snapshot ``new`` (no last one) or what differs from ``old``."""
         if old is None:
-            event = sse("snapshot", new)
+            event = self.snapshot_event()
             for stream in list(self.streams):
                 stream.send(event)
             return
         patch = {}
         for key in ("robots", "servers"):
-            if new[key] != old[key]:
-                patch[key] = new[key]
+            rows = rows_patch(old[key], new[key])
+            if rows is not None:
+                patch[key] = rows
         for key in ("logics", "spaces"):
-            changed = {n: v for n, v in new[key].items() if old[key].get(n) != v}
+            if new[key] is old[key]:
+                continue
+            names = new[key] if key == "logics" or described is None else described
+            changed = {n: new[key][n] for n in names if n in new[key] and old[key].get(n) != new[key][n]}
             gone = sorted(n for n in old[key] if n not in new[key])
             if changed or gone:
                 patch[key] = {"changed": changed, "gone": gone}
@@ -402,6 +484,12 @@ class Console:
             stream.send(event)
         if "spaces" in patch:
             self._refresh_details()
+
+    def snapshot_event(self):
+        """The current snapshot as a ``snapshot`` event, encoded once per snapshot."""
+        if self._snapshot_event is None:
+            self._snapshot_event = sse("snapshot", self.snapshot)
+        return self._snapshot_event
 
     def next_snapshot(self):
         """A Deferred firing with the next snapshot published (tests and the benchmark)."""
@@ -494,7 +582,7 @@ class Console:
         stream = Stream(request, self._stream_closed, self)
         self.streams[stream] = detail
         if self.snapshot is not None:
-            stream.send(sse("snapshot", self.snapshot))
+            stream.send(self.snapshot_event())
         else:
             self.changed()
         if detail:

@@ -656,6 +656,9 @@ class _SpaceHost:
     def _pairing_may_have_changed(self, space):
         """Hook: each side decides what a change means (master: on_state; robot: item-exited event)."""
 
+    def _changed(self, space):
+        """Hook: what ``describe`` says of ``space`` changed (the master tells its observers)."""
+
     # -- special items' hooks -------------------------------------------------------------------------------
     @defer.inlineCallbacks
     def _items_started(self, space):
@@ -688,6 +691,7 @@ class _SpaceHost:
     def _driver_said(self, space, cmd, r_name):
         log.info("service space %s: rcm_driver says %s %s", space.name, shown(cmd, 40), shown(r_name, 80))
         space.driver_events.append({"rcm_d_cmd": cmd, "r_name": r_name})
+        self._changed(space)
         waiters, space.driver_waiters = space.driver_waiters, []
         for wanted, d in waiters:
             if wanted == (cmd, r_name):

@@ -4,7 +4,10 @@ Each command validates its input (``rcmp_command``), does its SQLite work in a t
 returns a Deferred firing with the ``reason`` of an OK answer or failing with a ``CommandError``. Removing a
 connected robot first asks the master runtime (``robots.remove``) to disconnect it and tear its service space
 down; when the platform's VPN still holds a valid certificate for it, the answer and the log say how to revoke it
-(``robots.certificate_advice``). Reads are answered from a ``ReadCache`` while the robotics data has not changed.
+(``robots.certificate_advice``). Reads are answered from a ``ReadCache`` while the robotics data has not changed;
+the robots' read, whose rows also carry the ``server`` of each robot's space, is the same object while neither the
+data nor any robot's server changed (``placement``, counted from the ``ServiceSpaceManager``'s observers), so that
+the RDAPI encodes it once (``Rdapi._encoded``) however often it is read.
 """
 
 import logging
@@ -18,13 +21,35 @@ log = logging.getLogger("rcmp.platform")
 
 class PlatformCommands:
     """``data``: RoboticsData; ``robots``: the master runtime (``remove(pi_name, reason, remove)``,
-    ``certificate_advice(pi_name)``, and for the reads of CONTRACTS §8 ``server_rows()`` and ``server_of(pi_name)``)
-    or None."""
+    ``certificate_advice(pi_name)``, and for the reads of CONTRACTS §8 ``server_rows()`` and ``server_of(pi_name)``;
+    with ``spaces.observers`` its ``server_of`` answers are followed, else recomputed at every read) or None."""
 
     def __init__(self, data, robots=None):
         self.data = data
         self.robots = robots
         self.cache = ReadCache(data)
+        self.placement = 0      # bumped whenever server_of() of a robot changed (or may have: a server came or went)
+        self._placed = {}       # pi_name -> server_of(pi_name) as last seen, for the robots that have one
+        self._answer = None     # (rows of the data, placement, those rows with their servers): the last read()
+        observers = getattr(getattr(robots, "spaces", None), "observers", None)
+        self._follows_placement = observers is not None and hasattr(robots, "server_of")
+        if self._follows_placement:
+            for name in list(getattr(robots.spaces, "spaces", {}) or {}):
+                self._space_changed(name)
+            observers.append(self._space_changed)
+
+    def _space_changed(self, ss_name):
+        """ServiceSpaceManager observer (on the reactor): count a change of a robot's server."""
+        if ss_name is None:                 # a server joined or went
+            self.placement += 1
+            return
+        server = self.robots.server_of(ss_name)
+        if self._placed.get(ss_name) != server:
+            if server is None:
+                del self._placed[ss_name]
+            else:
+                self._placed[ss_name] = server
+            self.placement += 1
 
     @command
     def read(self, pi_type=None):
@@ -45,15 +70,23 @@ class PlatformCommands:
         return d.addCallback(self._with_servers)
 
     def _with_servers(self, rows):
+        """``rows`` (the data's, the same object while the data has not changed) with each robot's ``server``: the
+        last answer again while neither ``rows`` nor ``placement`` changed."""
         server_of = getattr(self.robots, "server_of", None)
         if server_of is None:
             return rows
-        rows = list(rows)
-        for index, row in enumerate(rows):
+        last = self._answer
+        if last is not None and last[0] is rows and last[1] == self.placement:
+            return last[2]
+        placement = self.placement
+        answer = list(rows)
+        for index, row in enumerate(answer):
             server = server_of(row["pi_name"])
             if server is not None:          # only robots with a service space have a server
-                rows[index] = dict(row, server=server)
-        return rows
+                answer[index] = dict(row, server=server)
+        if self._follows_placement:
+            self._answer = (rows, placement, answer)
+        return answer
 
     @command
     def provisioning(self, body):

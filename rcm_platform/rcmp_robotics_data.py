@@ -291,6 +291,14 @@ class RoboticsData:
                     "address": r[4]}
         return self._read(read)
 
+    def addresses(self):
+        """``{pi_name: address}`` of every robot (master excluded), as ``platform_instance`` gives it, in one query."""
+        def read():
+            return dict(self._db.execute(
+                "SELECT p.pi_name, coalesce(c.address, p.address) FROM platform_instance p "
+                "LEFT JOIN connection c ON c.pi_name = p.pi_name WHERE p.is_master = 0").fetchall())
+        return self._read(read)
+
     def provision_platform_instance(self, pi_name, slg_name):
         """Provision robot ``pi_name`` running ``slg_name``; NotFound (no such service logic) / Conflict (name taken)."""
         def write():

@@ -1,14 +1,16 @@
 /* The RCM platform console (CONTRACTS §9): plain JavaScript, no library, no other origin.
  *
  * State arrives pushed on one event stream (/console/api/events, Server-Sent Events read through fetch so that
- * an RDAPI token can go in the Authorization header): a "snapshot" first, then "patch"es with what changed.
+ * an RDAPI token can go in the Authorization header): a "snapshot" first, then "patch"es with what changed (robots
+ * and servers by changed row: applyRows).
  * Forms call the RDAPI itself and show its "reason" beside them. Everything users named is rendered with
  * textContent / createElement, never innerHTML.
  */
 "use strict";
 
 const state = { robots: [], servers: [], logics: {}, spaces: {}, seq: 0, at: 0, details: {} };
-const ui = { view: "overview", robot: null, topic: "", stream: null, topicStream: null, rowCache: new Map() };
+const ui = { view: "overview", robot: null, topic: "", stream: null, topicStream: null, rowCache: new Map(),
+             robotNames: "" };
 const TOKEN_KEY = "rcmp_console_token";
 
 // -- small DOM helpers ---------------------------------------------------------------------------------------
@@ -34,6 +36,13 @@ function localTime(seconds) { return seconds ? new Date(seconds * 1000).toLocale
 function replaceChildren(node, children) {
   while (node.firstChild) node.removeChild(node.firstChild);
   for (const child of children) node.appendChild(child);
+}
+/* Make `children` the element children of `node`, moving only what is not in place already (a long table whose
+   one row changed costs one replaced row, not the whole table). */
+function placeChildren(node, children) {
+  const keep = new Set(children);
+  for (const child of Array.from(node.children)) if (!keep.has(child)) node.removeChild(child);
+  children.forEach((child, i) => { if (node.children[i] !== child) node.insertBefore(child, node.children[i] || null); });
 }
 
 // -- RDAPI calls ---------------------------------------------------------------------------------------------
@@ -129,12 +138,24 @@ function restartStream() {
   openStream();
 }
 
+/* A list of rows named by pi_name after a patch's part for it: a whole list as it is (the snapshot's form), or
+   {changed, gone[, order]}: gone rows dropped, changed ones replaced where they are, new ones appended in the
+   order of `changed`; `order`, when there, names every row in order. */
+function applyRows(rows, patch) {
+  if (Array.isArray(patch)) return patch;
+  const byName = new Map(rows.map((r) => [r.pi_name, r]));
+  for (const gone of patch.gone || []) byName.delete(gone);
+  for (const [name, row] of Object.entries(patch.changed || {})) byName.set(name, row);
+  if (patch.order) return patch.order.filter((n) => byName.has(n)).map((n) => byName.get(n));
+  return Array.from(byName.values());
+}
+
 function onEvent(name, data) {
   if (name === "snapshot") {
     Object.assign(state, { robots: data.robots, servers: data.servers, logics: data.logics, spaces: data.spaces });
   } else if (name === "patch") {
-    if (data.robots) state.robots = data.robots;
-    if (data.servers) state.servers = data.servers;
+    if (data.robots) state.robots = applyRows(state.robots, data.robots);
+    if (data.servers) state.servers = applyRows(state.servers || [], data.servers);
     for (const key of ["logics", "spaces"]) {
       if (!data[key]) continue;
       for (const gone of data[key].gone) delete state[key][gone];
@@ -182,21 +203,26 @@ function renderRobots() {
   for (const r of state.robots) {
     seen.add(r.pi_name);
     if (filter && !r.pi_name.toLowerCase().includes(filter)) continue;
-    const key = JSON.stringify(r);
+    // a patch replaces a changed row's object and keeps the others: the same object is the same row
     let cached = ui.rowCache.get(r.pi_name);
-    if (!cached || cached.key !== key) {
-      cached = { key, row: robotRow(r) };
+    if (!cached || (cached.data !== r && JSON.stringify(cached.data) !== JSON.stringify(r))) {
+      cached = { data: r, row: robotRow(r) };
       ui.rowCache.set(r.pi_name, cached);
     }
+    cached.data = r;
     rows.push(cached.row);
   }
   for (const name of Array.from(ui.rowCache.keys())) if (!seen.has(name)) ui.rowCache.delete(name);
-  replaceChildren($("robots").tBodies[0], rows);
+  placeChildren($("robots").tBodies[0], rows);
   const connected = state.robots.filter((r) => r.connected).length;
   const paired = state.robots.filter((r) => r.paired).length;
   $("robots-count").textContent = `(${state.robots.length} provisioned, ${connected} connected, ${paired} paired)`;
   $("robots-empty").hidden = state.robots.length > 0;
-  replaceChildren($("robot-names"), state.robots.map((r) => el("option", { value: r.pi_name })));
+  const names = state.robots.map((r) => r.pi_name);
+  if (names.join("\n") !== ui.robotNames) {
+    ui.robotNames = names.join("\n");
+    replaceChildren($("robot-names"), names.map((n) => el("option", { value: n })));
+  }
 }
 
 function renderServers() {

@@ -399,6 +399,13 @@ class ServiceSpaceTests(unittest.TestCase):
             timeout=30)
         self.assertIn("instance_name: \"robot1\"", echoed.stdout)
         self.assertIn("instance_status: 1", echoed.stdout)
+        told = []       # what the observers (the console) could see each time they were told of robot1
+
+        def observer(name):
+            if name == "robot1":
+                told.append(list((describe(self.manager, "robot1") or {}).get("rcm_driver_events", [])))
+        self.manager.observers.append(observer)
+        self.addCleanup(self.manager.observers.remove, observer)
         yield threads.deferToThread(subprocess.run, [
             "rostopic", "pub", "-1", "/firos/cb_event", "robotics_msgs/CB_Event",
             "{entity_name: robot1, entity_status: 1}"], env=env, capture_output=True, timeout=30)
@@ -406,6 +413,8 @@ class ServiceSpaceTests(unittest.TestCase):
                             what="e_created from rcm_driver")
         self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"},
                       describe(self.manager, "robot1")["rcm_driver_events"])
+        # the observers were told when it came (the console describes again only the spaces they name)
+        self.assertIn({"rcm_d_cmd": "e_created", "r_name": "robot1"}, told[-1] if told else [])
 
     @defer.inlineCallbacks
     def test_rcm_driver_is_told_about_the_robot(self):

@@ -155,19 +155,23 @@ class ConsoleStreamTest(ConsoleCase):
         yield self.console.next_snapshot()
         request, _ = self.open()
         self.data.set_connected("robot1", "203.0.113.7")   # what the master's hello handler writes
-        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots", [{}])[0].get("connected"),
+
+        def robot1(data):
+            return (data.get("robots") or {}).get("changed", {}).get("robot1", {})
+        yield self.wait_event(request, lambda n, d: n == "patch" and robot1(d).get("connected"),
                               "the connection to be pushed")
         patch = request.last("patch")
-        self.assertEqual(patch["robots"], [{"pi_name": "robot1", "service_logic": "empty", "connected": True,
-                                            "paired": False, "address": "203.0.113.7"}])
+        self.assertEqual(patch["robots"], {"changed": {"robot1": {
+            "pi_name": "robot1", "service_logic": "empty", "connected": True, "paired": False,
+            "address": "203.0.113.7"}}, "gone": []})
         self.assertNotIn("logics", patch)      # only what changed
         self.data.set_paired("robot1", True)
-        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots", [{}])[0].get("paired"),
+        yield self.wait_event(request, lambda n, d: n == "patch" and robot1(d).get("paired"),
                               "the pairing to be pushed")
         self.data.set_disconnected("robot1")
-        yield self.wait_event(request, lambda n, d: n == "patch" and d.get("robots") == [
-            {"pi_name": "robot1", "service_logic": "empty", "connected": False, "paired": False,
-             "address": "203.0.113.7"}], "the disconnection to be pushed")
+        yield self.wait_event(request, lambda n, d: n == "patch" and robot1(d) == {
+            "pi_name": "robot1", "service_logic": "empty", "connected": False, "paired": False,
+            "address": "203.0.113.7"}, "the disconnection to be pushed")
 
     @defer.inlineCallbacks
     def test_a_stream_gets_heartbeats_and_a_client_that_does_not_read_is_dropped(self):
@@ -176,9 +180,11 @@ class ConsoleStreamTest(ConsoleCase):
         stream = request.producer
         stream.pauseProducing()               # the connection's buffer is full: the client does not read
         written = len(request.written)
-        for i in range(20):
+        for i in range(100):                  # a patch per robot, each some 150 bytes: 4096 reached long before
             self.data.provision_platform_instance(f"robot{i}", "empty")
             yield self.console.next_snapshot()
+            if request.aborted:
+                break
         self.assertTrue(request.aborted)
         self.assertEqual(len(request.written), written)
         self.assertNotIn(stream, self.console.streams)
