@@ -42,6 +42,14 @@ from typing import Optional
 AGENT_ROLES = ("master", "robot", "server")
 DEFAULT_LOG_MAX_BYTES = 1024 * 1024
 MASTER_DEFAULT_PORTS = (10100, 10101, 10102, 10103)
+SERVER_STARTING_SPACES = 4   # spaces the master builds at once on a server VM whose hello does not say how many
+
+
+def default_max_starting_spaces():
+    """Service spaces an agent builds at once unless ``max_starting_spaces`` says otherwise: two per core of its
+    own machine, at least 2 (the master's count for the spaces it hosts; what a server VM announces in its hello)."""
+    return max(2, 2 * (os.cpu_count() or 1))
+
 
 MAX_NAME_LENGTH = 64
 NAME_RE = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
@@ -172,8 +180,9 @@ class Config:
     rdapi_tls_key: Optional[str] = None   # (ext) master: its PEM private key
     allowed_origins: tuple = ()        # (ext) master: origins of web pages that may write to the RDAPI
     run_as: Optional[str] = None       # (ext) the user service items run as (default: the workspace's owner)
-    max_starting_spaces: Optional[int] = None    # (ext) service spaces the master builds at once (None: 2 per core)
-    ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit)
+    max_starting_spaces: Optional[int] = None    # (ext) service spaces this machine builds at once (None: 2 per core)
+    ic_max_connections: Optional[int] = None     # (ext) agent-port connections (None: a quarter of the fd limit,
+                                                 # which the agent raises to the hard limit at start)
     ic_max_per_address: Optional[int] = None     # (ext) agent-port connections from one address (None: 8)
     max_service_spaces: int = 100      # (ext) master, server VM: service spaces it hosts at most (0: none)
     servers: Optional[dict] = None     # (ext) master: server VM names allowed (name -> its only address, or None);
@@ -347,7 +356,7 @@ KEYS = {
     "rdapi_tls_cert": (_parse_path, ("master",)),
     "rdapi_tls_key": (_parse_path, ("master",)),
     "allowed_origins": (_parse_origins, ("master",)),
-    "max_starting_spaces": (_int_parser(1, 1000), ("master",)),
+    "max_starting_spaces": (_int_parser(1, 1000), ("master", "server")),
     "max_service_spaces": (_int_parser(0, 100000), ("master", "server")),
     "ic_max_connections": (_int_parser(1, 100000), ("master",)),
     "ic_max_per_address": (_int_parser(1, 10000), ("master",)),

@@ -10,12 +10,12 @@ robot-side items and say hello again when the master is lost). The wire format i
 ``docs/PROTOCOL.md`` documents every op.
 
 Live state the RDAPI shows (connected, paired, the service space row) is written through ``RoboticsData`` in a
-thread, one write after the other in the order the events happened.
+thread, in the order the events happened, the writes that waited meanwhile together in one transaction
+(``_BatchedWrites``).
 """
 
 import collections
 import logging
-import os
 import random
 
 from twisted.application import service
@@ -25,8 +25,8 @@ from twisted.python import failure
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform import rcmp_wd
 from rcm_platform.rcmp_command import BadRequest, validate_name
-from rcm_platform.rcmp_config import master_address_from
-from rcm_platform.rcmp_log_guard import shown
+from rcm_platform.rcmp_config import SERVER_STARTING_SPACES, default_max_starting_spaces, master_address_from
+from rcm_platform.rcmp_log_guard import Budget, shown
 from rcm_platform.rcmp_service_command import describe, describe_waiting
 
 log = logging.getLogger("rcmp.event")
@@ -46,13 +46,15 @@ REFUSAL_QUIET = 3600.0           # seconds during which the same agent refused f
 MAX_REFUSALS_REMEMBERED = 1024   # (code, name, address) kept for that
 ADDRESS_POLL = 0.5               # seconds between two looks for the platform address
 AFTER_DISCONNECT = 2.0           # a robot told to go waits at least this long before saying hello again
+HELLO_LINES = 20                 # accepted hellos logged per 10 s at most (then their count; a herd's are many)
+BEATS_ITSELF = 2                 # a peer whose heartbeat came within this many intervals gets none from the master
 
 _NONE = type(None)
 
 # op -> (who serves it, {field: accepted types}); fields in OPTIONAL may be absent (then None)
 OPS = {
     "hello": ("master", {"name": str, "address": str, "robot": bool, "version": int,
-                         "max_service_spaces": (int, _NONE)}),
+                         "max_service_spaces": (int, _NONE), "max_starting_spaces": (int, _NONE)}),
     "bye": ("master", {"reason": str}),
     "item_exited": ("master", {"ss_name": str, "report": dict}),
     "heartbeat": ("both", {}),
@@ -62,13 +64,8 @@ OPS = {
     "item_tails": ("robot", {"ss_name": str, "lines": int}),
     "disconnect": ("robot", {"reason": str}),
 }
-OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces"}
+OPTIONAL = {"ros_master_uri", "start_ros_master_port", "max_service_spaces", "max_starting_spaces"}
 MAX_SERVICE_SPACES = 100         # a server VM's max_service_spaces when its hello does not say
-
-
-def default_max_starting_spaces():
-    """Service spaces built at once unless ``max_starting_spaces`` says otherwise: two per core, at least 2."""
-    return max(2, 2 * (os.cpu_count() or 1))
 
 
 def _type_names(types):
@@ -102,24 +99,64 @@ def validate(op, body, side):
     return checked
 
 
-class _OrderedWrites:
-    """Runs blocking RoboticsData writes in a thread, one at a time, in the order they were asked for."""
+class _BatchedWrites:
+    """Runs blocking RoboticsData writes in a thread, in the order they were asked for, batched: the writes asked
+    for while a batch runs go together into the next one, one transaction (``RoboticsData.write_batch``, a
+    savepoint each: one that fails is rolled back alone and logged). A fleet pairing asks for thousands; one
+    transaction each, with the reactor holding the interpreter, fell behind by minutes."""
 
-    def __init__(self):
-        self._last = defer.succeed(None)
+    MAX_BATCH = 1000             # writes in one transaction at most (the rest go into the next)
+
+    def __init__(self, data):
+        self.data = data
+        self._pending = []           # (fn, args, Deferred) asked for since the running batch started
+        self._running = None         # the Deferred of the batch in its thread, or None
 
     def __call__(self, fn, *args):
+        """Queue ``fn(*args)`` (a write method of the data); the Deferred fires with its result, or fails."""
         done = defer.Deferred()
-
-        def run(_):
-            d = threads.deferToThread(fn, *args)
-            d.addCallbacks(done.callback, done.errback)
-            return d.addBoth(lambda _: None)
-
-        self._last = self._last.addCallback(run)
-        done.addErrback(lambda f: log.error("robotics data %s%r failed: %s", fn.__name__, args,
+        self._pending.append((fn, args, done))
+        if self._running is None:
+            self._next()
+        done.addErrback(lambda f: log.error("robotics data %s%r failed: %s", getattr(fn, "__name__", fn), args,
                                             f.getErrorMessage()) or None)
         return done
+
+    def flush(self):
+        """A Deferred that fires once every write asked for so far is done."""
+        if self._running is None and not self._pending:
+            return defer.succeed(None)
+        done = defer.Deferred()
+        self._pending.append((None, (), done))
+        if self._running is None:
+            self._next()
+        return done
+
+    def _next(self):
+        batch, self._pending = self._pending[:self.MAX_BATCH], self._pending[self.MAX_BATCH:]
+        calls = [(fn, args) for fn, args, _ in batch if fn is not None]
+        self._running = threads.deferToThread(self.data.write_batch, calls) if calls else defer.succeed([])
+        self._running.addCallbacks(self._finished, self._failed, callbackArgs=(batch,), errbackArgs=(batch,))
+
+    def _finished(self, results, batch):
+        outcomes = iter(results)
+        for fn, _, done in batch:
+            if fn is None:
+                done.callback(None)
+                continue
+            ok, value = next(outcomes)
+            done.callback(value) if ok else done.errback(value)
+        self._done()
+
+    def _failed(self, reason, batch):
+        for fn, _, done in batch:     # the transaction failed as a whole: nothing of the batch was kept
+            done.callback(None) if fn is None else done.errback(reason)
+        self._done()
+
+    def _done(self):
+        self._running = None
+        if self._pending:
+            self._next()
 
 
 def _address_function(config, address):
@@ -151,9 +188,23 @@ class AgentSession:
         self.paired_once = False     # its first pairing in this session was timed
         self.watchdog = rcmp_wd.Watchdog(
             agent.reactor, agent.config.heartbeat_interval, agent.config.heartbeat_misses,
-            send_beat=lambda: peer.request("heartbeat", {}, timeout=self.watchdog.limit),
-            last_heard=lambda: peer.last_heard, on_gone=self._gone,
+            send_beat=self._beat, last_heard=lambda: peer.last_heard, on_gone=self._gone,
             name=f"{self.what} {name}", on_miss=lambda: self._count("heartbeat_misses"))
+
+    def _beat(self):
+        """The master's own heartbeat, sent only when the peer needs it: every agent beats the master and hears
+        the answers, so beating it too only doubled the frames (and the master's work) per peer. Sent to a peer
+        that does not beat itself (no ``heartbeat`` request from it, ``peer.info["beat_at"]``, within the last
+        ``BEATS_ITSELF`` intervals: an agent that never beats, or one that stopped) and to one not heard from for
+        ``rcmp_wd.MISSED_AFTER`` intervals (its beats are late: ours makes it answer before the limit)."""
+        now = self.agent.reactor.seconds()
+        interval = self.watchdog.interval
+        beat_at = self.peer.info.get("beat_at")
+        beats_itself = beat_at is not None and now - beat_at < BEATS_ITSELF * interval
+        if beats_itself and now - (self.peer.last_heard or 0) < rcmp_wd.MISSED_AFTER * interval:
+            return None
+        self._count("heartbeats_sent")
+        return self.peer.request("heartbeat", {}, timeout=self.watchdog.limit)
 
     def _count(self, what):
         self.agent.counters[f"{what}_{self.what}"] += 1
@@ -207,8 +258,11 @@ class MasterAgent(service.Service):
     certificate cannot say hello as a server VM, nor a server's as a robot), and a server VM's name against the
     ``servers`` allow-list when it is set (``wrong_role``); then, under the robot's lock, its provisioning
     (``not_provisioned``) and its live session (``in_use`` when a session heard from within the heartbeat window
-    comes from another source address). Space creation is queued after the answer: at most
-    ``max_starting_spaces`` are built at once, the others wait in arrival order.
+    comes from another source address). Space creation is queued after the answer: each machine builds its own
+    count at once (``max_starting_spaces`` for the master's; a server VM's from its hello, ``SERVER_STARTING_SPACES``
+    when it does not say), so the platform builds at most their sum at once (``build_limit``) and the other
+    spaces wait in arrival order; a space placed on a server whose count is taken waits there for its turn
+    (``rcmp_ms.Server.building``).
     """
 
     name = "ic-master"
@@ -226,7 +280,7 @@ class MasterAgent(service.Service):
         self.sessions = {}           # robot name -> AgentSession
         self.servers = {}            # server VM name -> its session (robot false): it hosts service spaces
         self._locks = {}             # robot name -> DeferredLock: one hello / teardown at a time per robot
-        self._write = _OrderedWrites()
+        self._write = _BatchedWrites(data)
         self.max_starting_spaces = config.max_starting_spaces or default_max_starting_spaces()
         self._waiting = collections.OrderedDict()    # robot name -> (session, provisioning row), in arrival order
         self._starting = {}          # robot name -> session whose space is being built now
@@ -241,6 +295,9 @@ class MasterAgent(service.Service):
         self._removals = 0
         self._refreshing = None      # callers waiting for the read in flight, or None
         self._refusals_logged = collections.OrderedDict()   # (code, name, address) -> when it was last logged
+        # a fleet saying hello together would write a line per robot: the first few, then their count
+        self._hello_lines = Budget(log, "lines about accepted hellos", clock=reactor.seconds, burst=HELLO_LINES,
+                                   count_level=logging.INFO)
         self.listening = None
         self.address = None
         self._address_call = None
@@ -313,7 +370,8 @@ class MasterAgent(service.Service):
         self.listening = ic.listen(self.reactor, self.address, self.config.ic_port, self,
                                    max_connections=self.config.ic_max_connections,
                                    max_per_address=self.config.ic_max_per_address)
-        log.info("agent-to-agent server listening on %s:%d", self.address, self.config.ic_port)
+        log.info("agent-to-agent server listening on %s:%d (at most %d connections)", self.address,
+                 self.config.ic_port, self.listening.factory.caps.max_connections)
 
     @defer.inlineCallbacks
     def stopService(self):
@@ -333,7 +391,7 @@ class MasterAgent(service.Service):
         yield defer.gatherResults([
             self._locked(name, self._end_server, self.servers.get(name), "the master is stopping", tell=True)
             for name in list(self.servers)], consumeErrors=True)
-        yield self._write(lambda: None)
+        yield self._write.flush()
 
     # -- public -----------------------------------------------------------------------------------------
     def disconnect(self, pi_name, reason):
@@ -378,8 +436,7 @@ class MasterAgent(service.Service):
     def describe(self, ss_name):
         """The service_space/read payload: the space manager's space, or, for a space waiting to be built, why."""
         if ss_name in self._waiting:
-            return describe_waiting(list(self._waiting).index(ss_name) + 1, self.max_starting_spaces,
-                                    self.public_ip)
+            return describe_waiting(list(self._waiting).index(ss_name) + 1, self.build_limit(), self.public_ip)
         return describe(self.spaces, ss_name)
 
     # -- protocol handler -------------------------------------------------------------------------------
@@ -387,6 +444,7 @@ class MasterAgent(service.Service):
         body = validate(op, body, "master")
         session = peer.info.get("session")
         if op == "heartbeat":
+            peer.info["beat_at"] = self.reactor.seconds()       # it beats itself: the master need not (_beat)
             return {}
         if op == "hello":
             return self._hello(peer, body)
@@ -451,8 +509,8 @@ class MasterAgent(service.Service):
         finally:
             peer.info["hello_pending"] = False
         took = self.reactor.seconds() - started
-        log.info("%s %s connected from %s (hello answered in %.3f s)", "robot" if body["robot"] else "server",
-                 body["name"], peer.host, took)
+        self._hello_lines.info("%s %s connected from %s (hello answered in %.3f s)",
+                               "robot" if body["robot"] else "server", body["name"], peer.host, took)
         self._timed("hello", took)
         return answer
 
@@ -490,10 +548,12 @@ class MasterAgent(service.Service):
                              f"{peer.host}", code="wrong_address")
         self._check_role(peer, name, "robot" if body["robot"] else "server", certificate)
         if not body["robot"]:
-            session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"])
+            session = yield self._locked(name, self._admit_server, peer, name, body["max_service_spaces"],
+                                         body["max_starting_spaces"])
             if session is None:
                 raise ic.Refused("the connection closed during hello", code="gone")
-            self.spaces.add_server(name, session, session.capacity, peer.host)
+            self.spaces.add_server(name, session, session.capacity, peer.host, builds=session.builds)
+            self.reactor.callLater(0, self._next_spaces)      # the platform builds more at once now
             return {"accepted": True, "master": self.config.name,
                     "heartbeat_interval": self.config.heartbeat_interval,
                     "heartbeat_misses": self.config.heartbeat_misses}
@@ -604,11 +664,14 @@ class MasterAgent(service.Service):
         return pi
 
     @defer.inlineCallbacks
-    def _admit_server(self, peer, name, capacity):
+    def _admit_server(self, peer, name, capacity, builds):
         """Under ``name``'s lock: a server VM joins by itself (CONTRACTS §8). Refused when ``name`` is a provisioned
         robot's or a live server's from another address; the new session."""
         if capacity is not None and not 0 <= capacity <= 100000:
             raise ic.Refused(f"hello: max_service_spaces must be between 0 and 100000, not {capacity}",
+                             code="bad_request")
+        if builds is not None and not 1 <= builds <= 1000:
+            raise ic.Refused(f"hello: max_starting_spaces must be between 1 and 1000, not {builds}",
                              code="bad_request")
         pi = yield threads.deferToThread(self.data.platform_instance, name)
         if pi is not None or name in self.sessions:
@@ -620,6 +683,7 @@ class MasterAgent(service.Service):
             return None
         session = AgentSession(self, peer, name, peer.host, False)
         session.capacity = MAX_SERVICE_SPACES if capacity is None else capacity
+        session.builds = SERVER_STARTING_SPACES if builds is None else builds    # an older server does not say
         peer.admit()
         peer.info["session"] = session
         self.servers[name] = session
@@ -648,12 +712,17 @@ class MasterAgent(service.Service):
 
     # -- service space admission ------------------------------------------------------------------------
     def _queue_space(self, session, pi):
-        """Build the robot's space when its turn comes: at most max_starting_spaces at once, in arrival order."""
+        """Build the robot's space when its turn comes: at most ``build_limit()`` at once, in arrival order."""
         self._waiting[session.name] = (session, pi)
         self._next_spaces()
 
+    def build_limit(self):
+        """Spaces the platform builds at once: the master's own count and each connected server VM's."""
+        return self.max_starting_spaces + sum(server.builds for server in self.servers.values())
+
     def _next_spaces(self):
-        while self._waiting and len(self._starting) < self.max_starting_spaces:
+        limit = self.build_limit()
+        while self._waiting and len(self._starting) < limit:
             name, (session, pi) = self._waiting.popitem(last=False)
             if session.ended:
                 continue
@@ -831,6 +900,7 @@ class RobotAgent(service.Service):
                      "version": VERSION}
             if self.config.role == "server":
                 hello["max_service_spaces"] = self.config.max_service_spaces
+                hello["max_starting_spaces"] = self.config.max_starting_spaces or default_max_starting_spaces()
             answer = yield peer.request("hello", hello, timeout=HELLO_TIMEOUT)
         except ic.RemoteError as exc:
             self._problem("master %s refused hello: %s", master, shown(exc.reason))

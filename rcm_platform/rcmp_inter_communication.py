@@ -21,7 +21,9 @@ Rules (``docs/PROTOCOL.md`` is the reference):
 - a request with an unknown version or an op the receiver does not serve gets an ``err`` answer and the
   connection stays open;
 - every request has a timeout: its Deferred fails with ``RequestTimeout`` and a late answer is ignored;
-- when the connection goes, every pending request fails with ``PeerGone``.
+- when the connection goes, every pending request fails with ``PeerGone``;
+- both ends set ``TCP_NODELAY``: frames are small and answered at once (a heartbeat held back by Nagle's algorithm
+  waits for the peer's delayed acknowledgement, tens of milliseconds).
 
 This module knows nothing of robots: what the ops mean is ``rcmp_event``'s business. A connection's owner gives
 it a *handler* with ``request_received(peer, op, body) -> value | Deferred`` (raise ``Refused`` for an ``err``
@@ -40,6 +42,7 @@ import math
 import random
 import re
 import resource
+import socket
 
 from twisted.application.internet import backoffPolicy
 from twisted.internet import defer, endpoints, protocol
@@ -56,7 +59,8 @@ MAX_FRAME_DEPTH = 16             # levels of JSON nesting in one frame (a messag
 MAX_FRAME_BEFORE_ADMISSION = 4096           # bytes of JSON in one frame from a peer not admitted yet
 MAX_BYTES_BEFORE_ADMISSION = 64 * 1024      # bytes a peer may send in all before it is admitted
 MAX_PER_ADDRESS = 8              # connections a listener accepts from one source address
-LISTEN_BACKLOG = 512             # connections the kernel queues for accept (capped by somaxconn)
+MAX_UNANSWERED = 1024            # connections not admitted yet above which a listener stops accepting for a while
+SOMAXCONN = "/proc/sys/net/core/somaxconn"   # the kernel's cap on a listener's accept queue
 OP_RE = re.compile(r"[a-z][a-z_]{0,31}\Z")
 DEFAULT_TIMEOUT = 10.0           # seconds a request waits for its answer
 KINDS = ("req", "res", "err")
@@ -198,6 +202,10 @@ class Peer(Int32StringReceiver):
 
     # -- connection -------------------------------------------------------------------------------------
     def connectionMade(self):
+        # frames are small and answered at once: Nagle's algorithm would hold each behind the peer's delayed ack
+        no_delay = getattr(self.transport, "setTcpNoDelay", None)
+        if no_delay is not None:
+            no_delay(True)
         self.connected_at = self.last_heard = self.reactor.seconds()
         peer = self.transport.getPeer()
         self.host = getattr(peer, "host", "?")
@@ -238,6 +246,10 @@ class Peer(Int32StringReceiver):
 
     def admit(self):
         """The owner trusts this peer now: full-size frames, no byte budget."""
+        if not self.admitted:
+            admitted = getattr(getattr(self, "factory", None), "peer_admitted", None)
+            if admitted is not None:
+                admitted(self)
         self.admitted = True
         self.MAX_LENGTH = MAX_FRAME
 
@@ -409,12 +421,17 @@ class ConnectionCaps:
             self.per_address.pop(host, None)
 
 
+UNLIMITED_FILES = 65536          # the open-file limit counted for a process whose limit is infinite
+
+
 def default_max_connections():
-    """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), 64 to 4096."""
+    """A quarter of this process's open-file limit (the rest is for child pipes, the RDAPI, files), at least 64.
+    The agent raises its limit at start (``rcmp_resources.raise_open_files``), so the cap follows what the
+    machine allows: 5,000 under a hard limit of 20,000, 256 where only 1,024 descriptors may be open."""
     soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft == resource.RLIM_INFINITY:
-        return 4096
-    return max(64, min(4096, soft // 4))
+        soft = UNLIMITED_FILES
+    return max(64, soft // 4)
 
 
 class ListeningFactory(PeerFactory):
@@ -424,14 +441,25 @@ class ListeningFactory(PeerFactory):
     (``buildProtocol`` returns None: Twisted closes it before reading anything). Both the refusals (one line per
     window, then their count) and the warnings about connections not admitted yet (protocol errors, limits,
     refused hellos: ``warn_limited``) go into the log through ``rcmp_log_guard.Budget``s.
+
+    A herd (a fleet saying hello at once): while ``max_unanswered`` connections or more are open and not admitted
+    (their hello unanswered), the listening port stops accepting (``stopReading``); the kernel's accept queue
+    holds the others (``listen`` asks for ``somaxconn()``) until half of those are answered or gone. One turn of
+    the event loop then serves a few hundred hellos, not thousands, and the heartbeats' timers run between turns.
     """
 
-    def __init__(self, handler, reactor, max_connections=None, max_per_address=None):
+    def __init__(self, handler, reactor, max_connections=None, max_per_address=None, max_unanswered=None):
         super().__init__(handler, reactor)
         self.caps = ConnectionCaps(max_connections or default_max_connections(), max_per_address or MAX_PER_ADDRESS)
         self.refused_total = 0
         self.refusals = Budget(log, "refused connections on the agent port", clock=reactor.seconds, burst=1)
         self.warnings = Budget(log, "warnings about connections not admitted", clock=reactor.seconds)
+        self.max_unanswered = max_unanswered or MAX_UNANSWERED
+        self.unanswered = 0          # connections open and not admitted
+        self.port = None             # the listening port (``listen`` sets it): paused and resumed
+        self.paused = False
+        self.pauses = 0
+        self.pause_notes = Budget(log, "lines about accepts paused", clock=reactor.seconds, burst=1)
 
     @property
     def peers(self):
@@ -453,10 +481,38 @@ class ListeningFactory(PeerFactory):
         peer.factory = self
         peer.host = host
         caps.opened(peer, host)
+        self.unanswered += 1
+        if self.unanswered >= self.max_unanswered and not self.paused:
+            self._pause()
         return peer
 
+    def peer_admitted(self, peer):
+        self._answered()
+
     def peer_gone(self, peer):
+        if peer in self.caps.open and not peer.admitted:
+            self._answered()
         self.caps.closed(peer)
+
+    def _answered(self):
+        self.unanswered -= 1
+        if self.paused and self.unanswered <= self.max_unanswered // 2:
+            self._resume()
+
+    def _pause(self):
+        if self.port is None:
+            return
+        self.paused = True
+        self.pauses += 1
+        self.port.stopReading()
+        self.pause_notes.info("agent port: %d connections wait for their hello's answer; accepting the next ones "
+                              "once half of them are answered (the kernel queues them meanwhile)", self.unanswered)
+
+    def _resume(self):
+        self.paused = False
+        port = self.port
+        if port is not None and port.connected and not port.disconnecting:
+            port.startReading()
 
     def warn_limited(self, message, *args):
         self.warnings.warning(message, *args)
@@ -466,18 +522,30 @@ class ListeningFactory(PeerFactory):
         self.refusals.warning("refusing connections on the agent port (this one from %s): %s", host, why)
 
 
-def listen(reactor, address, port, handler, max_connections=None, max_per_address=None):
+def somaxconn():
+    """The kernel's cap on a listener's accept queue (``net.core.somaxconn``; Python's ``SOMAXCONN`` if unread)."""
+    try:
+        with open(SOMAXCONN) as f:
+            return max(1, int(f.read().strip()))
+    except (OSError, ValueError):
+        return socket.SOMAXCONN
+
+
+def listen(reactor, address, port, handler, max_connections=None, max_per_address=None, max_unanswered=None):
     """Listen on ``address:port`` now; returns the listening port (``stopListening()`` to stop). The caps
-    default (None) to ``default_max_connections()`` and ``MAX_PER_ADDRESS``.
+    default (None) to ``default_max_connections()``, ``MAX_PER_ADDRESS`` and ``MAX_UNANSWERED``.
 
     ``port.factory`` is the ``ListeningFactory`` (its caps and counters). Raises
     ``twisted.internet.error.CannotListenError`` (its message names the address and port) at once.
     """
-    factory = ListeningFactory(handler, reactor, max_connections, max_per_address)
+    factory = ListeningFactory(handler, reactor, max_connections, max_per_address, max_unanswered)
     # a fleet arriving at once (a master restarted under its robots) must not overflow the accept queue: a
-    # dropped SYN is retried by the robot's kernel only after a second or more
-    return reactor.listenTCP(port, factory, backlog=min(factory.caps.max_connections, LISTEN_BACKLOG),
-                             interface=address)
+    # dropped SYN is retried by the robot's kernel only after a second or more. The kernel's own cap is the most
+    # it will queue; while the listener pauses accepting (a herd), the queue holds the fleet
+    listening = reactor.listenTCP(port, factory, backlog=min(factory.caps.max_connections, somaxconn()),
+                                  interface=address)
+    factory.port = listening
+    return listening
 
 
 def connect(reactor, host, port, handler, timeout=5.0, bind_address=None):

@@ -52,10 +52,13 @@ def shown(value, limit=LOGGED_TEXT):
 
 class Budget:
     """At most ``burst`` lines per window into ``logger``; ``what`` names them in the line that counts the rest
-    ("warnings about connections not admitted"). ``clock`` gives seconds (``reactor.seconds`` in the agent)."""
+    ("warnings about connections not admitted"), written at ``count_level`` (a warning unless the lines left out
+    are ordinary news, such as a fleet's hellos). ``clock`` gives seconds (``reactor.seconds`` in the agent)."""
 
-    def __init__(self, logger, what, clock=time.monotonic, burst=BURST, period=PERIOD, longest=LONGEST):
+    def __init__(self, logger, what, clock=time.monotonic, burst=BURST, period=PERIOD, longest=LONGEST,
+                 count_level=logging.WARNING):
         self.logger = logger
+        self.count_level = count_level   # the level of the line counting what was left out
         self.what = what
         self.clock = clock
         self.burst = burst
@@ -98,8 +101,8 @@ class Budget:
             self._count_left_out()
 
     def _count_left_out(self):
-        self.logger.warning("%d more %s were left out of the log in the last %.0f s", self.left_out, self.what,
-                            self._length)
+        self.logger.log(self.count_level, "%d more %s were left out of the log in the last %.0f s", self.left_out,
+                        self.what, self._length)
         self.left_out = 0
 
     def _next_window(self, now):

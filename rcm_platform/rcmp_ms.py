@@ -52,6 +52,7 @@ from twisted.web import xmlrpc
 
 from rcm_platform import rcmp_inter_communication as ic
 from rcm_platform.rcmp_command import CommandError
+from rcm_platform.rcmp_config import SERVER_STARTING_SPACES, default_max_starting_spaces
 from rcm_platform.rcmp_log_guard import Budget, shown
 from rcm_platform.rcmp_process import DONE_STATES, FAILED, RUNNING, STARTING, STATES, check_transition
 from rcm_platform.rcmp_service_item import (ITEM_FAILURES, NodeExecutables, ServiceItem, child_env, graph_name,
@@ -754,15 +755,23 @@ class _SpaceHost:
 # ---------------------------------------------------------------------------------------------------------
 # Master side.
 
+
+
 class Server:
     """A place for service spaces (CONTRACTS §8): the master itself (``host`` None) or a connected server VM
-    (``host``: its ``RemoteAgent``, which starts the space's ROS master and S items there)."""
+    (``host``: its ``RemoteAgent``, which starts the space's ROS master and S items there).
 
-    def __init__(self, name, capacity, address, host=None):
+    ``builds`` is how many of its spaces are built at once (their ROS masters and items starting on that
+    machine), the others placed there wait for a turn (``building``): each machine its own count, so twenty
+    server VMs build twenty times as many as one."""
+
+    def __init__(self, name, capacity, address, host=None, builds=SERVER_STARTING_SPACES):
         self.name = name
         self.capacity = int(capacity)
         self.address = address
         self.host = host
+        self.builds = max(1, int(builds))
+        self.building = defer.DeferredSemaphore(self.builds)
 
 
 def choose_server(servers, hosted):
@@ -795,29 +804,53 @@ class ServiceSpaceManager(_SpaceHost):
                               # fn(None) when a server joins or goes (the console)
         self.i_name = "master" if config.role == "master" else config.name
         self.name = config.name
-        self.servers = {self.name: Server(self.name, config.max_service_spaces, public_ip)}
+        self.servers = {self.name: Server(self.name, config.max_service_spaces, public_ip,
+                                          builds=config.max_starting_spaces or default_max_starting_spaces())}
+        self._hosted = collections.Counter()        # server name -> spaces (ss_side S) it hosts now
+        self._of_server = {}                         # server name -> {pi_name: None} of its spaces, in creation order
         self.unplaced = collections.OrderedDict()   # pi_name -> (service logic, robot): waiting for room
         self.gone = collections.OrderedDict()       # server VMs lost or left: name -> Server (the last GONE_KEPT)
         self._placing = None
 
     # -- servers and placement (CONTRACTS §8) --------------------------------------------------------------
     def hosted(self):
-        """{server name: service spaces (ss_side S) it hosts now}."""
-        counts = collections.Counter()
-        for space in self.spaces.values():
-            if space.ss_side == "S" and space.server is not None:
-                counts[space.server] += 1
-        return counts
+        """{server name: service spaces (ss_side S) it hosts now}; kept up to date as spaces come and go (a copy,
+        as long as the servers are many, not the spaces)."""
+        return collections.Counter(self._hosted)
 
     def spaces_of(self, server_name):
-        """Names of the spaces ``server_name`` hosts, in creation order."""
-        return [s.name for s in self.spaces.values() if s.server == server_name]
+        """Names of the spaces ``server_name`` hosts, in creation order (kept per server: as long as their count)."""
+        return list(self._of_server.get(server_name, ()))
 
-    def add_server(self, name, host, capacity, address):
-        """A server VM joined: it takes new spaces from now on (nothing moves to it); waiting spaces are placed."""
-        self.servers[name] = Server(name, capacity, address, host)
+    def _add_space(self, space):
+        """``space`` is this manager's now: in ``spaces`` and in its server's counts."""
+        self.spaces[space.name] = space
+        self._of_server.setdefault(space.server, {})[space.name] = None
+        if space.ss_side == "S":
+            self._hosted[space.server] += 1
+
+    def _drop_space(self, space):
+        """``space`` is no longer this manager's (no effect when another space of its name took its place)."""
+        if self.spaces.get(space.name) is not space:
+            return
+        del self.spaces[space.name]
+        names = self._of_server.get(space.server)
+        if names is not None:
+            names.pop(space.name, None)
+            if not names:
+                del self._of_server[space.server]
+        if space.ss_side == "S":
+            self._hosted[space.server] -= 1
+            if self._hosted[space.server] <= 0:
+                del self._hosted[space.server]
+
+    def add_server(self, name, host, capacity, address, builds=SERVER_STARTING_SPACES):
+        """A server VM joined: it takes new spaces from now on (nothing moves to it), building at most ``builds``
+        at once; waiting spaces are placed."""
+        self.servers[name] = Server(name, capacity, address, host, builds=builds)
         self.gone.pop(name, None)
-        log.info("server %s (%s) joined: it hosts up to %d service spaces", name, address, capacity)
+        log.info("server %s (%s) joined: it hosts up to %d service spaces, building up to %d at once", name,
+                 address, capacity, self.servers[name].builds)
         self._changed_name(None)
         self._place_waiting_soon()
 
@@ -925,7 +958,7 @@ class ServiceSpaceManager(_SpaceHost):
         space.logic = service_logic
         space.server, space.host = server.name, server.host
         space.public_ip = self.public_ip if server.host is None else server.address
-        self.spaces[pi_name] = space
+        self._add_space(space)
         self._changed(space)
         log.info("service space %s: creating on %s (%d S items, %d R items, ROS master on the %s side)", pi_name,
                  server.name, len(items) - len(remote), len(remote), "robot" if ss_side == "R" else "server")
@@ -935,12 +968,16 @@ class ServiceSpaceManager(_SpaceHost):
             parts, master_on = [(here_or_server, local), (robot, remote)], here_or_server
         else:                # the ROS master on the robot, the S items here once it answers
             parts, master_on = [(robot, remote), (HERE, local)], robot
+        yield server.building.acquire()      # its turn among the spaces being built on that machine
         try:
-            yield self._bring_up(space, parts, master_on, self.config.ros_port_base)
+            if not space.cancelled:
+                yield self._bring_up(space, parts, master_on, self.config.ros_port_base)
         except Exception as exc:  # a bug: keep the space visible (and stoppable) with the reason
             space.reason = f"unexpected error: {exc!r}"
             log.exception("service space %s: unexpected error while creating", pi_name)
             space.settle()
+        finally:
+            server.building.release()
         if not space.cancelled:
             if space.paired:
                 self._notify(space)
@@ -1037,8 +1074,7 @@ class ServiceSpaceManager(_SpaceHost):
         except Exception:
             log.exception("service space %s: teardown error", space.name)
         finally:
-            if self.spaces.get(space.name) is space:
-                del self.spaces[space.name]
+            self._drop_space(space)
             space.transition(SPACE_GONE, "torn down")
             log.info("service space %s: torn down", space.name)
             if was_paired:

@@ -19,7 +19,9 @@ Owns:
   (``rcmp_metrics``, served at ``/metrics``), then the RDAPI listener;
   robot and server VM: the RobotAgent), started when the reactor runs and stopped (in reverse order) on
   SIGTERM/SIGINT before the process exits 0. It builds the process table, the space runtime, the address
-  function and the items' user (``rcmp_service_item.resolve_run_as``) and passes them in.
+  function and the items' user (``rcmp_service_item.resolve_run_as``) and passes them in; before, it raises the
+  open-file limit, and while the reactor runs it freezes the garbage collector's old objects
+  (``rcmp_resources``).
 """
 
 import argparse
@@ -397,6 +399,8 @@ def _main(argv):
 
     from twisted.internet import reactor
     from twisted.internet.error import ReactorNotRunning
+    from . import rcmp_resources
+    rcmp_resources.raise_open_files()    # before the agent port's cap is taken from the limit
     outcome = {"status": EXIT_OK}
 
     def late_error(message):  # the agent could not start once the managed VPN was up
@@ -449,6 +453,7 @@ def _main(argv):
     # give it the default handler, which Twisted then replaces with its own (stop the reactor)
     signal.signal(signal.SIGINT, signal.default_int_handler)
     reactor.callWhenRunning(start)
+    reactor.callWhenRunning(rcmp_resources.GcFreezer(reactor).start)
     reactor.addSystemEventTrigger("before", "shutdown", stop)
     reactor.run()
     log.info("rcmp_n stopped")

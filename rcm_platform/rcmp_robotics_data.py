@@ -7,8 +7,11 @@ it describes processes of a previous life of the agent.
 
 Access is synchronous and thread-safe: one connection guarded by one lock; every write is one transaction
 (``BEGIN IMMEDIATE`` ... ``COMMIT``, rolled back on any error), so a crash or a rejected request never leaves half
-a service logic behind. Callers on the reactor thread wrap calls with ``deferToThread``. ``generation`` counts
-committed writes; readers that cache answers (``rcmp_command.ReadCache``) compare it to know their copy is current.
+a service logic behind. ``write_batch`` runs several writes in one transaction, each in its own savepoint (the
+master's live-state writes, which come by the thousand while a fleet pairs: one commit for all that waited, and
+a write that fails leaves the others). Callers on the reactor thread wrap calls with ``deferToThread``.
+``generation`` counts committed transactions; readers that cache answers (``rcmp_command.ReadCache``) compare it
+to know their copy is current.
 Names are validated by ``rcmp_command`` before they get here.
 
 Also holds the RDAPI's bearer tokens (table ``rdapi_token``: name, role, SHA-256 of the token, never the token
@@ -120,6 +123,7 @@ class RoboticsData:
         self.generation = 0
         self.observers = []   # fn(generation) after every committed write, on the writing thread (the console)
         self._lock = threading.Lock()
+        self._batch_thread = None   # the thread running write_batch: its writes join the batch's transaction
         try:
             self._db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=30.0)
             self._db.execute("PRAGMA foreign_keys = ON")
@@ -169,7 +173,10 @@ class RoboticsData:
         self._db.execute("BEGIN IMMEDIATE")
 
     def _write(self, func, *args):
-        """Run ``func(*args)`` in one transaction under the lock; bump ``generation`` when it committed."""
+        """Run ``func(*args)`` in one transaction under the lock; bump ``generation`` when it committed. Inside
+        ``write_batch`` (on its thread) ``func`` runs in the batch's transaction instead (its savepoint)."""
+        if self._batch_thread == threading.get_ident():
+            return func(*args)
         with self._lock:
             self._begin()
             try:
@@ -180,9 +187,46 @@ class RoboticsData:
                 raise
             self.generation += 1
             generation = self.generation
+        self._tell_observers(generation)
+        return result
+
+    def write_batch(self, calls):
+        """Run ``calls``, ``[(fn, args)]`` (write methods of this object, such as ``set_paired``), in order, in one
+        transaction, each in its own savepoint: one that raises is rolled back alone (nothing of it is left) and
+        the others are kept. One commit, ``generation`` bumped once and the observers told once for the whole
+        batch. Returns ``[(True, result) or (False, exception)]`` in the order of ``calls``. If the commit itself
+        fails, nothing of the batch is kept and the exception is raised."""
+        results = []
+        with self._lock:
+            self._begin()
+            self._batch_thread = threading.get_ident()
+            try:
+                for fn, args in calls:
+                    self._db.execute("SAVEPOINT batch_write")
+                    try:
+                        result = fn(*args)
+                    except Exception as exc:
+                        self._db.execute("ROLLBACK TO batch_write")
+                        self._db.execute("RELEASE batch_write")
+                        results.append((False, exc))
+                    else:
+                        self._db.execute("RELEASE batch_write")
+                        results.append((True, result))
+                self._db.execute("COMMIT")
+            except BaseException:
+                if self._db.in_transaction:     # SQLite may have rolled back already (a full disk, say)
+                    self._db.execute("ROLLBACK")
+                raise
+            finally:
+                self._batch_thread = None
+            self.generation += 1
+            generation = self.generation
+        self._tell_observers(generation)
+        return results
+
+    def _tell_observers(self, generation):
         for observer in list(self.observers):
             observer(generation)
-        return result
 
     def _read(self, func, *args):
         with self._lock:

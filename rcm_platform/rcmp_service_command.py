@@ -17,8 +17,8 @@ def describe_waiting(place, limit, public_ip):
     """The ``service_space/read`` payload of a space waiting to be built, ``place`` in line."""
     return {"r_nodes": [], "r_launchers": [], "public_ip": public_ip, "inbound_port": None,
             "ros_master_uri": None, "paired": False, "waiting": True,
-            "reason": f"waiting to be built: number {place} in line; the master builds at most "
-                      f"{limit} service spaces at once"}
+            "reason": f"waiting to be built: number {place} in line; the platform builds at most "
+                      f"{limit} service spaces at once (each server its own share)"}
 
 
 def describe(host, ss_name):

@@ -6,8 +6,10 @@ if the peer has been silent for ``misses * interval`` seconds it stops and calls
 once; otherwise it sends one beat through ``send_beat()`` (a callable returning a Deferred, whose failure only
 means "not heard", never an error). A check that runs more than half an interval late means this agent itself
 was stalled: frames may be waiting unread, so the peer is judged at the next check instead. Time comes from the ``clock`` (the reactor, or ``task.Clock`` in tests).
-A check that has heard nothing from the peer since the check before it (which sent the last beat), the peer not yet
-gone, counts a missed beat: ``on_miss()`` is told (the master counts them for ``/metrics``).
+A check that has heard nothing from the peer for more than ``MISSED_AFTER`` intervals, the peer not yet gone, counts
+a missed beat: ``on_miss()`` is told (the master counts them for ``/metrics``). Not "nothing since the check
+before": a peer that beats by itself (the master sends no beats to one, ``rcmp_event``) has its beats land near
+our checks, on either side as the two loops' lateness varies, so one interval may see two and the next none.
 """
 
 import logging
@@ -15,6 +17,8 @@ import logging
 from twisted.internet import task
 
 log = logging.getLogger("rcmp.wd")
+
+MISSED_AFTER = 1.5               # intervals of silence a check counts as a missed beat
 
 
 class Watchdog:
@@ -80,7 +84,7 @@ class Watchdog:
                 log.warning("%s silent for %.1f s (limit %.1f s): gone", self.name, silent, self.limit)
                 self.on_gone(silent)
             return
-        elif self.on_miss is not None and self.last_heard() < previous:
+        elif self.on_miss is not None and silent > MISSED_AFTER * self.interval:
             self.on_miss()
         d = self.send_beat()
         if d is not None:

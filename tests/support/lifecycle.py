@@ -58,24 +58,24 @@ SESSION_ENDED = re.compile(r"ending robot (\w+)'s session: (.*)")
 class SessionLog:
     """What the agents' logs say about sessions (from each log's text after a given offset).
 
-    ``opened``: master-side sessions per robot name; ``ended``: [(name, reason)] sessions the master ended;
-    ``master_hello`` / ``robot_hello``: seconds each accepted hello took, as the master measured it (from reading
-    the hello to answering) and as the robots did (from sending it to reading the answer);
-    ``robot_lost``: robots' "lost the master" lines."""
+    ``opened``: sessions per robot name, from each robot's own "connected to master" lines (the master logs the
+    first hellos of each 10 s only: a herd's are counted, not written); ``ended``: [(name, reason)] sessions the
+    master ended; ``master_hello`` / ``robot_hello``: seconds accepted hellos took, as the master measured them
+    (from reading the hello to answering: those it logged) and as the robots did (from sending it to reading the
+    answer: every one); ``robot_lost``: robots' "lost the master" lines."""
 
     def __init__(self, master_text, robot_texts):
         self.opened = {}
         self.ended = []
-        self.master_hello = []
-        for match in MASTER_HELLO.finditer(master_text):
-            self.opened[match.group(1)] = self.opened.get(match.group(1), 0) + 1
-            self.master_hello.append(float(match.group(2)))
+        self.master_hello = [float(match.group(2)) for match in MASTER_HELLO.finditer(master_text)]
         for match in SESSION_ENDED.finditer(master_text):
             self.ended.append((match.group(1), match.group(2).strip()))
         self.robot_hello = []
         self.robot_lost = []
         for text in robot_texts:
-            self.robot_hello += [float(m.group(2)) for m in ROBOT_HELLO.finditer(text)]
+            for match in ROBOT_HELLO.finditer(text):
+                self.opened[match.group(1)] = self.opened.get(match.group(1), 0) + 1
+                self.robot_hello.append(float(match.group(2)))
             self.robot_lost += [line for line in text.splitlines() if "lost the master" in line]
 
     def reopened(self):

@@ -27,7 +27,8 @@ EXTRA_MODULES = ["__main__.py",  # ours: `python3 -m rcm_platform` (CONTRACTS §
                  "rcmp_vpn.py",  # ours: the platform's VPN (CONTRACTS §7), in the master and the robot zips
                  # ours: split out of the seed's modules for one job each (CONTRACTS §6), master and robot zips
                  "rcmp_config.py", "rcmp_log_guard.py", "rcmp_process.py", "rcmp_service_item.py",
-                 "rcmp_deps.py"]  # ours: the one line naming a missing package, master and robot zips
+                 "rcmp_deps.py",  # ours: the one line naming a missing package, master and robot zips
+                 "rcmp_resources.py"]  # ours: the agent's open-file limit and garbage collector, both zips
 CONSOLE_MODULES = ["rcmp_console.py",   # ours: the console (CONTRACTS §9), master zip only
                    "rcmp_metrics.py"]   # ours: the RDAPI's /metrics, master zip only
 CONSOLE_FILES = ["rcm_platform/console/console.css", "rcm_platform/console/console.js",
@@ -118,6 +119,13 @@ def check_firos_listing(listing):
 def test_zip_lists_exactly_the_seed_files(tmp_path, package):
     path, _ = build(tmp_path, package)
     assert names(path) == EXPECTED[package][1]
+
+
+def test_every_module_of_the_agents_package_is_in_the_master_zip():
+    """A module added to rcm_platform/ and forgotten in create_robotics_pkg's listing would install an agent that
+    cannot import it: every module of the source tree is in the master zip's listing."""
+    modules = {name for name in os.listdir(os.path.join(ROOT, "rcm_platform")) if name.endswith(".py")}
+    assert modules == set(SEED_MASTER_MODULES + EXTRA_MODULES + CONSOLE_MODULES)
 
 
 def test_firos_zip_has_the_seed_layout(tmp_path):

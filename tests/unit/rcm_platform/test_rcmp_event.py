@@ -68,6 +68,16 @@ class Data:
     def set_disconnected(self, name):
         self._record("disconnected", name)
 
+    def write_batch(self, calls):
+        """RoboticsData.write_batch's answer, without a transaction: each call in order."""
+        results = []
+        for fn, args in calls:
+            try:
+                results.append((True, fn(*args)))
+            except Exception as exc:
+                results.append((False, exc))
+        return results
+
     def names(self, name):
         with self.lock:
             return [e[0] for e in self.events if e[1] == name]

@@ -21,9 +21,11 @@ class ServerSpaces(Spaces):
     def __init__(self):
         super().__init__()
         self.servers = {}
+        self.builds = {}
 
-    def add_server(self, name, session, capacity, address):
+    def add_server(self, name, session, capacity, address, builds=None):
         self.servers[name] = (session, capacity, address)
+        self.builds[name] = builds
 
     def remove_server(self, name, why):
         self.servers.pop(name, None)

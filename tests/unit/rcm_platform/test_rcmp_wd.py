@@ -112,7 +112,7 @@ class WatchdogTests(unittest.TestCase):
 
 
 class MissedBeatTests(unittest.TestCase):
-    """``on_miss``: a check that finds the peer silent for a whole interval, before it is gone."""
+    """``on_miss``: a check that finds the peer silent for more than one and a half intervals, before it is gone."""
 
     def setUp(self):
         self.clock = task.Clock()
@@ -142,6 +142,16 @@ class MissedBeatTests(unittest.TestCase):
             self.clock.advance(1.9)
             self.peer.heard = self.clock.seconds()   # its own beats, just before each of our checks
             self.clock.advance(0.1)
+        self.assertEqual((self.missed, self.gone), ([], []))
+
+    def test_a_peer_beating_by_itself_near_our_checks_misses_nothing(self):
+        self.dog.start()
+        self.peer.answering = False
+        for n in range(10):                     # its beats land just after, then just before our checks
+            offset = 0.05 if n % 2 else 1.95
+            self.clock.advance(offset)
+            self.peer.heard = self.clock.seconds()
+            self.clock.advance(2.0 - offset)
         self.assertEqual((self.missed, self.gone), ([], []))
 
     def test_a_late_check_is_not_a_miss(self):

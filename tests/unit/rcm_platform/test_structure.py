@@ -16,7 +16,8 @@ PACKAGE = os.path.join(REPO, "rcm_platform")
 
 # a module may import only modules of a lower layer
 LAYERS = {
-    "rcmp_config": 0, "rcmp_log_guard": 0, "rcmp_wd": 0, "rcmp_deps": 0, "rcmp_inter_communication": 1,
+    "rcmp_config": 0, "rcmp_log_guard": 0, "rcmp_wd": 0, "rcmp_deps": 0, "rcmp_resources": 0,
+    "rcmp_inter_communication": 1,
     "rcmp_command": 1, "rcmp_process": 1,
     "rcmp_service_item": 2, "rcmp_robotics_data": 2, "rcmp_platform_command": 2, "rcmp_service_command": 2,
     "rcmp_ext_connector": 2, "rcmp_vpn": 2,
