@@ -12,6 +12,11 @@ robot-side items and say hello again when the master is lost). The wire format i
 Live state the RDAPI shows (connected, paired, the service space row) is written through ``RoboticsData`` in a
 thread, in the order the events happened, the writes that waited meanwhile together in one transaction
 (``_BatchedWrites``).
+
+About 1,000 lines, more than the 900 or so of most modules, because the master's and the robot's side of one
+protocol are kept together (each op's validation, its sender and its handler change at once); the pieces that
+are jobs of their own live beside it (the wire: ``rcmp_inter_communication``; placement and the space runtime:
+``rcmp_ms``; heartbeats: ``rcmp_wd``; the process's own limits: ``rcmp_resources``).
 """
 
 import collections

@@ -33,7 +33,7 @@ What a service item is and how it becomes a process (command line, environment, 
 imports neither ``rcmp_event`` nor ``rcmp_node``: ``rcmp_node`` builds the runtime and hands it (and the function
 giving the platform address) to the agents.
 
-About 1,120 lines, more than the 900 or so of the other modules, because it is one runtime that both sides run:
+About 1,200 lines, more than the 900 or so of the other modules, because it is one runtime that both sides run:
 the master's manager and the ``ItemRunner`` share the start sequence, the ROS master, the items' start and
 registration, the special items' ports and rcm_driver link, and the stopping (``_SpaceHost``); the parts that
 were jobs of their own have left it (the process table: ``rcmp_process``; what an item is: ``rcmp_service_item``).

@@ -1,4 +1,4 @@
-"""The platform's own VPN (CONTRACTS §7): its PKI, its OpenVPN configurations, and OpenVPN run by the agent.
+"""The platform's own VPN (docs/VPN.md): its PKI, its OpenVPN configurations, and OpenVPN run by the agent.
 
 Owns:
 - ``HOME/vpn/`` (mode 0700) and everything in it: the certificate authority (``ca.crt``, ``ca.key``), the server's
@@ -22,6 +22,9 @@ Owns:
 - ``ManagedVpn``: with ``HOME/vpn/server.conf`` (master) or ``HOME/vpn/client.conf`` (robot, server VM) the agent
   runs OpenVPN as a child of its process table before anything else, restarts it with backoff when it exits,
   stops it last, and logs its state changes. Without those files this module does nothing to the agent.
+
+About 930 lines: the PKI, the OpenVPN files made from it and the OpenVPN the agent runs are one job (each
+command changes the certificates and the files OpenVPN reads together), so they stay one module.
 """
 
 import argparse
