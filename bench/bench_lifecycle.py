@@ -463,7 +463,7 @@ Ratio to the floor: **{ratio:.2f}x** (target ≤ {TARGET_RATIO}x): {"met" if ok_
 Load average (1 / 5 min) {load_before} at the start, {load_after} at the end (2 cores: above 2, other work
 shared the machine and every time above is longer). Against the floor with `rosrun` (how this benchmark measured it before: its bash, `catkin_find` and `rospack`
 cost about 0.2 CPU-s that the platform's nodes do not pay): {pair_p50 / floor_rosrun:.2f}x. The floor's node
-above is started the platform's way (`rcmp_command.NodeExecutables.direct_argv`: roslaunch's own lookup of the
+above is started the platform's way (`rcmp_service_item.NodeExecutables.direct_argv`: roslaunch's own lookup of the
 file rosrun would run, then one exec of it), without the platform's own wrappers (`setsid`, `setpriv`, `nice`),
 which count against the platform.
 Where the time goes (agents' logs): the robot agent's own start until hello, 0.2-0.3 s (Python, Twisted and
