@@ -45,9 +45,9 @@ class BatchedWritesTests(unittest.TestCase):
         first = self.writes(self.gated)
         yield until(lambda: self.batches)                # the first batch runs (and waits for the gate)
         generation = self.data.generation
-        later = [self.writes(self.data.set_connected, "r1", "10.8.0.6"),
+        later = [self.writes(self.data.set_connected, "r1", "198.51.100.6"),
                  self.writes(self.data.set_paired, "r1", True),
-                 self.writes(self.data.set_connected, "r2", "10.8.0.7"),
+                 self.writes(self.data.set_connected, "r2", "198.51.100.7"),
                  self.writes(self.data.set_disconnected, "r2")]
         self.gate.set()
         yield first
@@ -63,11 +63,11 @@ class BatchedWritesTests(unittest.TestCase):
     def test_a_failing_write_fails_alone(self):
         first = self.writes(self.gated)
         yield until(lambda: self.batches)
-        good = self.writes(self.data.set_connected, "r1", "10.8.0.6")
-        bad = self.writes(self.data.set_connected, "ghost", "10.8.0.9")
+        good = self.writes(self.data.set_connected, "r1", "198.51.100.6")
+        bad = self.writes(self.data.set_connected, "ghost", "198.51.100.9")
         failures = []
         bad.addErrback(failures.append)
-        after = self.writes(self.data.set_connected, "r3", "10.8.0.8")
+        after = self.writes(self.data.set_connected, "r3", "198.51.100.8")
         self.gate.set()
         yield defer.gatherResults([first, good, after])
         yield bad
@@ -82,7 +82,7 @@ class BatchedWritesTests(unittest.TestCase):
 
     @defer.inlineCallbacks
     def test_a_failing_write_alone_is_logged_and_swallowed(self):
-        done = self.writes(self.data.set_connected, "ghost", "10.8.0.9")
+        done = self.writes(self.data.set_connected, "ghost", "198.51.100.9")
         result = yield done
         self.assertIsNone(result)                        # logged, then swallowed (see the log line)
         self.assertTrue(any("ghost" in line for line in self.log.lines))
@@ -91,7 +91,7 @@ class BatchedWritesTests(unittest.TestCase):
     def test_flush_waits_for_what_was_asked_before_it(self):
         first = self.writes(self.gated)
         yield until(lambda: self.batches)
-        self.writes(self.data.set_connected, "r1", "10.8.0.6")
+        self.writes(self.data.set_connected, "r1", "198.51.100.6")
         flushed = self.writes.flush()
         self.assertFalse(flushed.called)
         self.gate.set()

@@ -33,10 +33,10 @@ def test_a_batch_is_one_transaction_told_once(data, path):
     told = []
     data.observers.append(told.append)
     before = data.generation
-    results = data.write_batch([(data.set_connected, ("r1", "10.8.0.6")),
-                                (data.set_connected, ("r2", "10.8.0.7")),
+    results = data.write_batch([(data.set_connected, ("r1", "198.51.100.6")),
+                                (data.set_connected, ("r2", "198.51.100.7")),
                                 (data.set_paired, ("r1", True)),
-                                (data.set_service_space, ("r1", "http://10.8.0.1:11311/", 10100))])
+                                (data.set_service_space, ("r1", "http://198.51.100.1:11311/", 10100))])
     assert results == [(True, None), (True, None), (True, True), (True, None)]
     assert data.generation == before + 1
     assert told == [before + 1]
@@ -45,10 +45,10 @@ def test_a_batch_is_one_transaction_told_once(data, path):
 
 
 def test_writes_run_in_the_order_given(data):
-    data.write_batch([(data.set_connected, ("r1", "10.8.0.6")), (data.set_paired, ("r1", True)),
-                      (data.set_disconnected, ("r1",)), (data.set_connected, ("r1", "10.8.0.9"))])
+    data.write_batch([(data.set_connected, ("r1", "198.51.100.6")), (data.set_paired, ("r1", True)),
+                      (data.set_disconnected, ("r1",)), (data.set_connected, ("r1", "198.51.100.9"))])
     assert data.platform_instance("r1") == {"pi_name": "r1", "service_logic": "fiware_base", "connected": True,
-                                            "paired": False, "address": "10.8.0.9"}
+                                            "paired": False, "address": "198.51.100.9"}
     results = data.write_batch([(data.set_disconnected, ("r1",)), (data.set_paired, ("r1", True))])
     assert results[1] == (True, False)                  # paired after disconnected: nothing to pair
 
@@ -61,10 +61,10 @@ def test_a_failing_write_is_rolled_back_alone(data, path):
         return data._write(write)
 
     before = data.generation
-    results = data.write_batch([(data.set_connected, ("r1", "10.8.0.6")),
+    results = data.write_batch([(data.set_connected, ("r1", "198.51.100.6")),
                                 (half_then_fail, ()),
-                                (data.set_connected, ("ghost", "10.8.0.9")),
-                                (data.set_connected, ("r2", "10.8.0.7"))])
+                                (data.set_connected, ("ghost", "198.51.100.9")),
+                                (data.set_connected, ("r2", "198.51.100.7"))])
     assert results[0] == (True, None) and results[3] == (True, None)
     assert not results[1][0] and isinstance(results[1][1], RuntimeError)
     assert not results[2][0] and isinstance(results[2][1], NotFound)
@@ -80,14 +80,14 @@ def test_a_batch_whose_commit_fails_keeps_nothing(data, path):
     before = data.generation
     try:
         with pytest.raises(sqlite3.OperationalError):
-            data.write_batch([(data.set_connected, ("r1", "10.8.0.6")), (data.set_connected, ("r2", "10.8.0.7"))])
+            data.write_batch([(data.set_connected, ("r1", "198.51.100.6")), (data.set_connected, ("r2", "198.51.100.7"))])
     finally:
         blocker.execute("ROLLBACK")
         blocker.close()
     assert data.generation == before
     assert connections(path) == {}
     data._db.execute("PRAGMA busy_timeout = 30000")
-    data.set_connected("r1", "10.8.0.6")                # the lock and the connection are fine afterwards
+    data.set_connected("r1", "198.51.100.6")                # the lock and the connection are fine afterwards
     assert connections(path) == {"r1": 0}
 
 
