@@ -70,6 +70,9 @@ _ALLOWED_SOURCES = {
 }
 
 SETSID = "/usr/bin/setsid"
+# a child reaped before its spawn returned (it ended at once: an executable that is not there, a wrapper that
+# fails) has its output still in the pipes: it is judged once they close, or after this many seconds
+EARLY_END_OUTPUT_WAIT = 0.5
 ENV = "/usr/bin/env"
 SETPRIV = "/usr/bin/setpriv"
 NICE = "/usr/bin/nice"
@@ -346,6 +349,8 @@ class ManagedProcess:
         self._partial = b""
         self._log = None
         self._settle_call = None
+        self._spawning = False      # inside table.os.spawn: a child reaped then is judged after it returns
+        self._early_end = None      # the call that judges such a child if its pipes stay open
         self._settled_waiters = []
         self._gone_waiters = []
         self._descendants = {}
@@ -404,16 +409,20 @@ class ManagedProcess:
         self._log = CappedLog(self.log_path, table.log_max_bytes)
         self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} start{' as ' + self.user.name if self.user else ''}: {shlex.join(self.argv)}\n".encode())
         self.started_at = table.reactor.seconds()
+        self._spawning = True
         try:
             self.pid = table.os.spawn(_ChildProtocol(self), self.argv, self.env, user=self.user)
         except (OSError, ValueError, TypeError) as exc:
+            self._spawning = False
             self.started_at = None
             self.error = f"could not start {self.argv[0]}: {exc}"
             self._log.close()
             self._transition(FAILED, self.error)
             return
+        self._spawning = False
         log.info("process %s started: pid %s, argv %s, log %s", self.key, self.pid, self.argv, self.log_path)
-        if self._reaped_yet:      # it ended before the spawn returned (a busy machine): nothing left to settle
+        if self._reaped_yet:      # it ended before the spawn returned: judged with its output, nothing to settle
+            self._early_end = table.reactor.callLater(EARLY_END_OUTPUT_WAIT, self._ended)
             return
         self._settle_call = table.reactor.callLater(table.settle_time, self._settled)
 
@@ -450,7 +459,7 @@ class ManagedProcess:
         return defer.succeed(self.state == RUNNING)
 
     def _reaped(self, reason):
-        """The reaping path: the only place where a child becomes exited or failed."""
+        """The reaping path: the only way to ``_ended``, where a child becomes exited or failed."""
         value = reason.value
         self.exit_code = getattr(value, "exitCode", None)
         self.exit_signal = getattr(value, "signal", None)
@@ -460,6 +469,14 @@ class ManagedProcess:
         self._settle_call = None
         if self._log is not None:
             self._log.write(f"=== {time.strftime('%Y-%m-%d %H:%M:%S')} ended: {self._how_ended()}\n".encode())
+        if not self._spawning:
+            self._ended()
+
+    def _ended(self):
+        """Judge a reaped child: exited as asked (stopping) or failed, with the output that says why."""
+        if self._early_end is not None and self._early_end.active():
+            self._early_end.cancel()
+        self._early_end = None
         if self.state == STOPPING:
             self._check_gone()
             return
@@ -472,9 +489,12 @@ class ManagedProcess:
             self._sweep_leftovers()
 
     def _pipes_closed(self):
-        """No process holds the child's output pipes any more: flush the last partial line, close the log."""
+        """No process holds the child's output pipes any more: flush the last partial line, close the log (and
+        judge a child that ended before its spawn returned, now that its output is all in)."""
         if self._partial:
             self._output(b"\n")
+        if self._early_end is not None:
+            self._ended()
         if self._log is not None:
             self._log.close()
             self._log = None

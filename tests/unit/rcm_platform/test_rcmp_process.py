@@ -101,18 +101,43 @@ def test_spawn_is_starting_until_settle_time(tmp_path):
     assert mp.state == STARTING
 
 
-def test_a_child_reaped_before_the_spawn_returns_is_failed_with_its_pid_and_leaves_no_timer(tmp_path):
-    """Twisted reaps a child that ended at once from inside the spawn (a busy machine): the table knows its pid
-    (the transport's, from connectionMade), it is failed, and no settle timer is left behind."""
-    table, clock, fake = make_table(tmp_path)
+def reaped_inside_the_spawn(fake):
+    """Make ``fake`` spawn children that Twisted reaps before the spawn returns (they ended at once); returns the
+    list their protocols go into."""
+    protocols = []
 
     def spawn_and_end_at_once(proto, argv, env, cwd=None, user=None):
         proto.makeConnection(type("Transport", (), {"pid": 1234})())
-        proto.processExited(Failure(ierror.ProcessDone(0)))
+        proto.processExited(Failure(ierror.ProcessTerminated(127, None)))
+        protocols.append(proto)
         return 1234
     fake.spawn = spawn_and_end_at_once
+    return protocols
+
+
+def test_a_child_reaped_inside_the_spawn_is_judged_with_its_output_once_its_pipes_close(tmp_path):
+    """Twisted reaps a child that ended at once (here: a wrapper that could not exec) from inside the spawn,
+    before a byte of its output was read: the table knows its pid (the transport's, from connectionMade), waits
+    for the output that says why, and leaves no timer behind."""
+    table, clock, fake = make_table(tmp_path)
+    protocols = reaped_inside_the_spawn(fake)
     mp = spawn(table)
-    assert mp.state == FAILED and mp.pid == 1234 and "before it settled" in mp.error
+    settled = fired(mp.when_settled())
+    assert mp.pid == 1234 and settled == []
+    protocols[0].outReceived(b"setsid: failed to execute rosrun: No such file or directory\n")
+    protocols[0].processEnded(Failure(ierror.ProcessTerminated(127, None)))
+    assert mp.state == FAILED and settled == [False]
+    assert "before it settled" in mp.error and "failed to execute rosrun" in mp.error
+    assert clock.getDelayedCalls() == []
+
+
+def test_a_child_reaped_inside_the_spawn_whose_pipes_stay_open_is_judged_after_a_moment(tmp_path):
+    table, clock, fake = make_table(tmp_path)
+    reaped_inside_the_spawn(fake)
+    mp = spawn(table)
+    assert mp.state == STARTING
+    clock.advance(rcmp_process.EARLY_END_OUTPUT_WAIT)
+    assert mp.state == FAILED and "exited with status 127 before it settled" in mp.error
     assert clock.getDelayedCalls() == []
 
 
